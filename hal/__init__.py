@@ -1,0 +1,1 @@
+"""Hardware abstraction layer: cameras and tensile frame controllers behind small protocols."""
