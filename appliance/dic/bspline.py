@@ -45,7 +45,7 @@ def spline_coefficients(image: np.ndarray) -> np.ndarray:
 
 @numba.njit(inline="always", fastmath=False, cache=True)
 def cubic_weights(t: float) -> tuple[float, float, float, float]:
-    """Cubic B-spline weights of the four samples at offsets -1, 0, 1, 2 for fraction t in [0, 1)."""
+    """Cubic B-spline weights of the samples at offsets -1, 0, 1, 2 for fraction t in [0, 1)."""
     s = 1.0 - t
     t2 = t * t
     t3 = t2 * t
@@ -109,7 +109,7 @@ def interpolate(coefficients: np.ndarray, x: float, y: float) -> float:
 def interpolate_with_gradient(
     coefficients: np.ndarray, x: float, y: float
 ) -> tuple[float, float, float]:
-    """Value and gradient (d/dx, d/dy) of the interpolant at (x, y), same bounds as `interpolate`."""
+    """Value and gradient (d/dx, d/dy) of the interpolant at (x, y); bounds as `interpolate`."""
     ix = int(np.floor(x))
     iy = int(np.floor(y))
     tx = x - ix
@@ -167,9 +167,7 @@ def sample(
         raise ValueError("x and y must have the same shape")
     height = coefficients.shape[0] - 2 * PAD
     width = coefficients.shape[1] - 2 * PAD
-    if xs.size and (
-        xs.min() < 0 or ys.min() < 0 or xs.max() > width - 1 or ys.max() > height - 1
-    ):
+    if xs.size and (xs.min() < 0 or ys.min() < 0 or xs.max() > width - 1 or ys.max() > height - 1):
         raise ValueError(f"sample points outside the image rectangle {width} x {height}")
     out = np.empty((3 if gradient else 1, xs.size), dtype=np.float64)
     _sample(coefficients, xs, ys, gradient, out)

@@ -329,9 +329,7 @@ def _refine(
                 step = np.sqrt(
                     dp[0] * dp[0]
                     + dp[3] * dp[3]
-                    + half
-                    * half
-                    * (dp[1] * dp[1] + dp[2] * dp[2] + dp[4] * dp[4] + dp[5] * dp[5])
+                    + half * half * (dp[1] * dp[1] + dp[2] * dp[2] + dp[4] * dp[4] + dp[5] * dp[5])
                 )
                 if not (step < side and np.isfinite(u) and np.isfinite(v)):
                     outcome = 4

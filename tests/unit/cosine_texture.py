@@ -1,4 +1,4 @@
-"""A band-limited analytic texture: exact grey values at any point, so any mapping has exact truth."""
+"""Band-limited analytic texture: exact grey values anywhere, so any mapping has exact truth."""
 
 import numpy as np
 

@@ -29,8 +29,10 @@ def test_band_limited_texture_is_interpolated_without_s_curve_bias():
     c = spline_coefficients(texture.image(80, 80))
     fractions = np.linspace(0.0, 1.0, 21)
     xs = 40.0 + fractions
-    errors = [np.abs(sample(c, xs, np.full_like(xs, y)) - texture(xs, np.full_like(xs, y))).max()
-              for y in (30.0, 40.25, 50.5)]
+    errors = [
+        np.abs(sample(c, xs, np.full_like(xs, y)) - texture(xs, np.full_like(xs, y))).max()
+        for y in (30.0, 40.25, 50.5)
+    ]
     spread = texture.image(80, 80).std()
     assert max(errors) < 0.01 * spread
 
