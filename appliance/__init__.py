@@ -1,3 +1,3 @@
-"""Video extensometer appliance: measures strain on a tensile specimen by digital image correlation."""
+"""Video extensometer appliance: strain on a tensile specimen by digital image correlation."""
 
 __version__ = "0.1.0"

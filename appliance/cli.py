@@ -1,10 +1,239 @@
-"""Command-line entry point `extensometer`."""
+"""Command line `extensometer`.
 
+Subcommands:
+    track   correlate points of interest between a reference image and target images.
+    bench   accuracy and speed benchmarks of the measurement core (reports with figures).
+
+Bad input ends with one line `extensometer: error: ...` naming the culprit and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
 import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from appliance.errors import InputError
+
+EXIT_USAGE = 2
 
 
-def main(argv: list[str] | None = None) -> int:
+class _Parser(argparse.ArgumentParser):
+    """Argument parser whose errors are one line, like every other error of the tool."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise InputError(f"{self.prog}: {message}")
+
+
+def _positive_odd(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 5 or value % 2 == 0:
+        raise argparse.ArgumentTypeError(f"{value} must be an odd size >= 5")
+    return value
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{value} must be >= 0")
+    return value
+
+
+def _non_negative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"{value} must be a finite number >= 0")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The `extensometer` argument parser."""
+    from appliance.dic.correlation import SEARCH_METHODS
+
+    parser = _Parser(prog="extensometer", description=__doc__.split("\n\n")[0])
+    commands = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    track = commands.add_parser(
+        "track",
+        help="correlate points between a reference and target images",
+        description=(
+            "Measure the displacement of each point of interest from REF to every IMG: "
+            "integer search, then IC-GN subpixel refinement with a first-order shape "
+            "function. Each image is measured against REF; the result of the previous "
+            "image seeds the next one (the points file's u0,v0 seed the first)."
+        ),
+    )
+    track.add_argument("reference", metavar="REF", help="reference image (TIFF, PNG, BMP)")
+    track.add_argument("images", metavar="IMG", nargs="+", help="target images")
+    track.add_argument(
+        "--points", required=True, metavar="FILE", help="CSV with header x,y[,u0,v0]"
+    )
+    track.add_argument("--subset", type=_positive_odd, default=41, help="subset size, px (41)")
+    track.add_argument(
+        "--search", choices=SEARCH_METHODS, default="lpq", help="integer search method (lpq)"
+    )
+    track.add_argument(
+        "--search-radius", type=_non_negative_int, default=50, help="search half-width, px (50)"
+    )
+    track.add_argument(
+        "--prefilter-sigma",
+        type=_non_negative_float,
+        default=0.0,
+        help="Gaussian pre-filter of both images before IC-GN, px (0 = off)",
+    )
+    output = track.add_mutually_exclusive_group()
+    output.add_argument("--json", action="store_true", help="print JSON on stdout")
+    output.add_argument("--out", metavar="FILE", help="write JSON to FILE")
+
+    bench = commands.add_parser("bench", help="benchmarks of the measurement core")
+    benches = bench.add_subparsers(dest="bench", required=True, parser_class=_Parser)
+    accuracy = benches.add_parser(
+        "accuracy",
+        help="reproduce the paper's accuracy experiments; writes report.md, plots, results.json",
+    )
+    accuracy.add_argument("--out", required=True, metavar="DIR", help="report directory")
+    accuracy.add_argument(
+        "--quick", action="store_true", help="fewer cases and points, for a fast look"
+    )
+    speed = benches.add_parser("speed", help="IC-GN and integer-search throughput")
+    speed.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    speed.add_argument("--out", metavar="FILE", help="also write the JSON to FILE")
+    return parser
+
+
+def _track(args: argparse.Namespace) -> int:
+    from appliance.dic.correlation import Correlator, PointStatus
+    from appliance.imageio import read_grey
+    from appliance.points_file import read_points
+
+    points = read_points(args.points)
+    reference = read_grey(args.reference)
+    height, width = reference.shape
+    half = args.subset // 2
+    for (x, y), line in zip(points.xy, points.lines, strict=True):
+        if x - half < 0 or y - half < 0 or x + half > width - 1 or y + half > height - 1:
+            raise InputError(
+                f"{args.points}:{line}: subset {args.subset}x{args.subset} at ({x:g}, {y:g}) "
+                f"reaches outside the {width}x{height} reference image {args.reference}"
+            )
+    correlator = Correlator(
+        subset=args.subset,
+        search=args.search,
+        search_radius=args.search_radius,
+        prefilter_sigma=args.prefilter_sigma,
+    )
+    correlator.prepare(reference.astype(np.float64), points.xy)
+    guess = np.zeros((len(points.xy), 2)) if points.guess is None else points.guess.copy()
+    measured: list[dict] = []
+    try:
+        for path in args.images:
+            image = read_grey(path)
+            if image.shape != reference.shape:
+                raise InputError(
+                    f"{path}: size {image.shape[1]}x{image.shape[0]} differs from the "
+                    f"reference {args.reference} ({width}x{height})"
+                )
+            result = correlator.measure(image.astype(np.float64), guess).refinement
+            converged = result.status == PointStatus.CONVERGED
+            guess[converged, 0] = result.u[converged]
+            guess[converged, 1] = result.v[converged]
+            measured.append(_image_record(path, points.xy, result))
+    except InputError as error:
+        _emit(args, measured)
+        raise error
+    _emit(args, measured)
+    return 0
+
+
+def _finite_or_none(value: float) -> float | None:
+    return float(value) if math.isfinite(value) else None
+
+
+def _image_record(path: str, xy: np.ndarray, result) -> dict:
+    from appliance.dic.icgn import PointStatus
+
+    records = []
+    for k in range(len(xy)):
+        records.append(
+            {
+                "x": float(xy[k, 0]),
+                "y": float(xy[k, 1]),
+                "u": _finite_or_none(result.u[k]),
+                "v": _finite_or_none(result.v[k]),
+                "ux": _finite_or_none(result.ux[k]),
+                "uy": _finite_or_none(result.uy[k]),
+                "vx": _finite_or_none(result.vx[k]),
+                "vy": _finite_or_none(result.vy[k]),
+                "zncc": _finite_or_none(result.zncc[k]),
+                "iterations": int(result.iterations[k]),
+                "status": PointStatus(int(result.status[k])).name.lower(),
+            }
+        )
+    return {"path": str(path), "points": records}
+
+
+def _emit(args: argparse.Namespace, measured: list[dict]) -> None:
+    document = {"images": measured}
+    if args.out:
+        try:
+            Path(args.out).write_text(json.dumps(document, indent=1) + "\n", encoding="utf-8")
+        except OSError as exc:
+            raise InputError(f"{args.out}: cannot write output ({exc.strerror})") from None
+    elif args.json:
+        json.dump(document, sys.stdout, indent=1)
+        sys.stdout.write("\n")
+    else:
+        for image in measured:
+            print(image["path"])
+            print(f"{'x':>9} {'y':>9} {'u':>10} {'v':>10} {'zncc':>8} {'it':>3}  status")
+            for p in image["points"]:
+                u = "-" if p["u"] is None else f"{p['u']:10.4f}"
+                v = "-" if p["v"] is None else f"{p['v']:10.4f}"
+                zncc = "-" if p["zncc"] is None else f"{p['zncc']:8.5f}"
+                print(
+                    f"{p['x']:9.2f} {p['y']:9.2f} {u:>10} {v:>10} {zncc:>8} "
+                    f"{p['iterations']:3d}  {p['status']}"
+                )
+
+
+def _bench(args: argparse.Namespace) -> int:
+    if args.bench == "accuracy":
+        from appliance.bench.accuracy import run_accuracy_benchmark
+
+        return run_accuracy_benchmark(Path(args.out), quick=args.quick)
+    from appliance.bench.speed import run_speed_benchmark
+
+    return run_speed_benchmark(as_json=args.json, out=Path(args.out) if args.out else None)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
     """Run the `extensometer` command line; returns the process exit status."""
-    del argv
-    print("extensometer: no command yet", file=sys.stderr)
-    return 2
+    try:
+        args = build_parser().parse_args(argv)
+        if args.command == "track":
+            return _track(args)
+        return _bench(args)
+    except InputError as error:
+        print(f"extensometer: error: {error}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("extensometer: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
