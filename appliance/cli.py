@@ -27,7 +27,8 @@ class _Parser(argparse.ArgumentParser):
     """Argument parser whose errors are one line, like every other error of the tool."""
 
     def error(self, message: str) -> None:  # type: ignore[override]
-        raise InputError(f"{self.prog}: {message}")
+        command = self.prog.removeprefix("extensometer").strip()
+        raise InputError(f"{command}: {message}" if command else message)
 
 
 def _positive_odd(text: str) -> int:
