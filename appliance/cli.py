@@ -61,9 +61,29 @@ def _non_negative_float(text: str) -> float:
     return value
 
 
+def _finite_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{value} is not finite")
+    return value
+
+
+def _positive_odd_window(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 3 or value % 2 == 0:
+        raise argparse.ArgumentTypeError(f"{value} must be an odd size >= 3")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The `extensometer` argument parser."""
-    from appliance.dic.correlation import SEARCH_METHODS
+    from appliance.dic.correlation import DEFAULT_PREFILTER_SIGMA, SEARCH_METHODS
 
     parser = _Parser(prog="extensometer", description=__doc__.split("\n\n")[0])
     commands = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -85,7 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     track.add_argument("--subset", type=_positive_odd, default=41, help="subset size, px (41)")
     track.add_argument(
-        "--search", choices=SEARCH_METHODS, default="lpq", help="integer search method (lpq)"
+        "--search", choices=SEARCH_METHODS, default="zncc", help="integer search method (zncc)"
     )
     track.add_argument(
         "--search-radius", type=_non_negative_int, default=50, help="search half-width, px (50)"
@@ -93,8 +113,24 @@ def build_parser() -> argparse.ArgumentParser:
     track.add_argument(
         "--prefilter-sigma",
         type=_non_negative_float,
+        default=DEFAULT_PREFILTER_SIGMA,
+        help=f"Gaussian pre-filter of both images before IC-GN, px ({DEFAULT_PREFILTER_SIGMA}; "
+        "0 = off)",
+    )
+    track.add_argument(
+        "--blur-px",
+        type=_non_negative_float,
         default=0.0,
-        help="Gaussian pre-filter of both images before IC-GN, px (0 = off)",
+        help="known motion blur of the targets, px: the reference is blurred to match (0)",
+    )
+    track.add_argument(
+        "--blur-angle-deg",
+        type=_finite_float,
+        default=0.0,
+        help="direction of that motion, degrees from +x towards +y (0)",
+    )
+    track.add_argument(
+        "--lpq-window", type=_positive_odd_window, default=None, help="LPQ window M, px (7)"
     )
     output = track.add_mutually_exclusive_group()
     output.add_argument("--json", action="store_true", help="print JSON on stdout")
@@ -131,11 +167,15 @@ def _track(args: argparse.Namespace) -> int:
                 f"{args.points}:{line}: subset {args.subset}x{args.subset} at ({x:g}, {y:g}) "
                 f"reaches outside the {width}x{height} reference image {args.reference}"
             )
+    if args.lpq_window is not None and args.lpq_window > args.subset:
+        raise InputError(f"track: --lpq-window {args.lpq_window} exceeds --subset {args.subset}")
     correlator = Correlator(
         subset=args.subset,
         search=args.search,
         search_radius=args.search_radius,
         prefilter_sigma=args.prefilter_sigma,
+        reference_blur=(args.blur_px, args.blur_angle_deg) if args.blur_px > 0 else None,
+        lpq_window=args.lpq_window,
     )
     correlator.prepare(reference.astype(np.float64), points.xy)
     guess = np.zeros((len(points.xy), 2)) if points.guess is None else points.guess.copy()
