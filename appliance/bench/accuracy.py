@@ -443,7 +443,12 @@ def check_targets(results: dict) -> list[dict]:
             value = _worst(table, "u_error", stat, **match)
             rows.append(
                 {
-                    "group": f"noise-free dense speckle, 41x41, {_config(prefilter)}",
+                    "group": (
+                        f"noise-free dense speckle, 41x41, {_config(prefilter)}"
+                        if condition == "float"
+                        else f"dense speckle, 41x41, 8-bit quantised (quantisation noise "
+                        f"0.29 grey levels), {_config(prefilter)}"
+                    ),
                     "rule": "all",
                     "target": target,
                     "case": f"dense, {condition}, {grid}, prefilter {prefilter:g}, worst shift",
