@@ -31,54 +31,27 @@ class _Parser(argparse.ArgumentParser):
         raise InputError(f"{command}: {message}" if command else message)
 
 
-def _positive_odd(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if value < 5 or value % 2 == 0:
-        raise argparse.ArgumentTypeError(f"{value} must be an odd size >= 5")
-    return value
+def _number(parse, accept, requirement: str):
+    """An argparse type: `parse` the text, then keep the value only if `accept` says so."""
+
+    def convert(text: str):
+        try:
+            value = parse(text)
+        except ValueError:
+            kind = "an integer" if parse is int else "a number"
+            raise argparse.ArgumentTypeError(f"{text!r} is not {kind}") from None
+        if not (math.isfinite(value) and accept(value)):
+            raise argparse.ArgumentTypeError(f"{value} {requirement}")
+        return value
+
+    return convert
 
 
-def _non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{value} must be >= 0")
-    return value
-
-
-def _non_negative_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (math.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"{value} must be a finite number >= 0")
-    return value
-
-
-def _finite_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"{value} is not finite")
-    return value
-
-
-def _positive_odd_window(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if value < 3 or value % 2 == 0:
-        raise argparse.ArgumentTypeError(f"{value} must be an odd size >= 3")
-    return value
+_subset_size = _number(int, lambda v: v >= 5 and v % 2 == 1, "must be an odd size >= 5")
+_window_size = _number(int, lambda v: v >= 3 and v % 2 == 1, "must be an odd size >= 3")
+_non_negative_int = _number(int, lambda v: v >= 0, "must be >= 0")
+_non_negative_float = _number(float, lambda v: v >= 0, "must be a finite number >= 0")
+_finite_float = _number(float, lambda v: True, "is not finite")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -103,7 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
     track.add_argument(
         "--points", required=True, metavar="FILE", help="CSV with header x,y[,u0,v0]"
     )
-    track.add_argument("--subset", type=_positive_odd, default=41, help="subset size, px (41)")
+    track.add_argument("--subset", type=_subset_size, default=41, help="subset size, px (41)")
     track.add_argument(
         "--search", choices=SEARCH_METHODS, default="zncc", help="integer search method (zncc)"
     )
@@ -129,9 +102,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=0.0,
         help="direction of that motion, degrees from +x towards +y (0)",
     )
-    track.add_argument(
-        "--lpq-window", type=_positive_odd_window, default=None, help="LPQ window M, px (7)"
-    )
+    track.add_argument("--lpq-window", type=_window_size, default=None, help="LPQ window M, px (7)")
     output = track.add_mutually_exclusive_group()
     output.add_argument("--json", action="store_true", help="print JSON on stdout")
     output.add_argument("--out", metavar="FILE", help="write JSON to FILE")
