@@ -608,6 +608,14 @@ def _markdown_table(headers: Sequence[str], rows: Sequence[Sequence[str]]) -> li
     return out
 
 
+def _success_axes(ax, title: str, xlabel: str) -> None:
+    ax.set_ylim(-5, 105)
+    ax.set_title(title, fontsize=9)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("integer success, %")
+    ax.legend(fontsize=7)
+
+
 def write_plots(results: dict, out: Path) -> list[str]:
     """Draw the report's figures as PNG files in `out`; returns their file names."""
     import matplotlib
@@ -677,11 +685,7 @@ def write_plots(results: dict, out: Path) -> list[str]:
                     marker="o",
                     label=method,
                 )
-            ax.set_ylim(-5, 105)
-            ax.set_title(f"{pattern}, translation {translation} px", fontsize=9)
-            ax.set_xlabel("motion blur length, px")
-            ax.set_ylabel("integer success, %")
-            ax.legend(fontsize=7)
+            _success_axes(ax, f"{pattern}, translation {translation} px", "motion blur length, px")
     fig.tight_layout()
     fig.savefig(out / "b_blur_success.png", dpi=110)
     plt.close(fig)
@@ -691,7 +695,7 @@ def write_plots(results: dict, out: Path) -> list[str]:
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for i, pattern in enumerate(("paper", "dense")):
         ax = axes[i]
-        for method in _methods():
+        for method in _methods(blurred=False):
             for prewarped, style in ((False, "--"), (True, "-")):
                 rows = [
                     r
@@ -707,11 +711,7 @@ def write_plots(results: dict, out: Path) -> list[str]:
                     marker="o",
                     label=method + (" + prewarps" if prewarped else ""),
                 )
-        ax.set_ylim(-5, 105)
-        ax.set_title(f"{pattern} speckle, one-step stretch", fontsize=9)
-        ax.set_xlabel("axial strain, %")
-        ax.set_ylabel("integer success, %")
-        ax.legend(fontsize=7)
+        _success_axes(ax, f"{pattern} speckle, one-step stretch", "axial strain, %")
     fig.tight_layout()
     fig.savefig(out / "b_stretch_success.png", dpi=110)
     plt.close(fig)
@@ -720,7 +720,7 @@ def write_plots(results: dict, out: Path) -> list[str]:
     c = results["c_subset"]
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for pattern in ("paper", "dense"):
-        for method in ("lpq", "zncc"):
+        for method in _methods():
             rows = [r for r in c if r["pattern"] == pattern and r["method"] == method]
             label = f"{pattern}, {method}"
             axes[0].plot(
