@@ -381,6 +381,7 @@ def part_d_hard_cases(quick: bool) -> list[dict]:
 
 
 TARGETS = {
+    "interpolation_s_curve_bias_px": 0.0015,
     "dense_noise_free_mean_bias_px": 0.001,
     "dense_noise_free_std_px": 0.0015,
     "dense_noise_free_max_px": 0.005,
@@ -457,6 +458,27 @@ def check_targets(results: dict) -> list[dict]:
                     "met": value is not None and value <= TARGETS[target],
                 }
             )
+    for pattern in ("paper", "dense"):
+        value = _worst(
+            table,
+            "u_error",
+            "mean",
+            pattern=pattern,
+            method="proposed",
+            condition="float",
+            prefilter_sigma=0.0,
+        )
+        rows.append(
+            {
+                "group": "S-curve bias of the B-spline interpolant (noise-free, no pre-filter)",
+                "rule": "all",
+                "target": "interpolation_s_curve_bias_px",
+                "case": f"{pattern}, float, both grids, worst shift",
+                "limit": TARGETS["interpolation_s_curve_bias_px"],
+                "measured": value,
+                "met": value is not None and value <= TARGETS["interpolation_s_curve_bias_px"],
+            }
+        )
     for pattern, method, prefilter in itertools.product(
         ("paper", "dense"), ("proposed", "conventional"), (0.0, DEFAULT_PREFILTER_SIGMA)
     ):

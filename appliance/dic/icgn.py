@@ -23,6 +23,15 @@ images J = grad f . dW/dp and the Hessian H = sum J^T J are computed once per re
 Reference values, reference gradients and target values all come from the cubic B-spline
 interpolant of `appliance.dic.bspline`, so subpixel points of interest are exact too.
 
+The target side has a per-image cost too: the B-spline coefficients of the whole (pre-filtered)
+target, about 14 ms at 700 x 700 px and 140 ms at 2048 x 2048 px. `ICGN.prepare_target` pays
+it once and returns a `PreparedTarget`, which `compute` accepts in place of the image, and
+`compute(..., indices=...)` refines any subset of the prepared points. Together they let a
+caller refine the points of one image pair in many small batches, as the seed-and-propagate
+scheme of `appliance.dic.propagation` does, for the price of one coefficient computation. The
+result of a point depends only on the point, its guess and the images: refining it alone, in a
+subset or in the whole batch, with one thread or many, gives the same numbers bit for bit.
+
 The kernel is compiled with numba, runs over many points per call (in parallel over points
 when more than one thread is allowed) and allocates nothing inside the iteration loop: each
 worker allocates one scratch buffer per block of points.
@@ -53,6 +62,16 @@ class PointStatus(enum.IntEnum):
         Hessian).
     DIVERGED: the iteration ran away (non-finite values, a step larger than the subset, a
         folded warp) or the warped target subset is flat.
+
+    `ICGN.compute` reports only the five values above. Schemes that decide which points to
+    refine, and accept or reject the outcome, add two (`appliance.dic.propagation`):
+
+    NOT_REACHED: the point was never refined, because no accepted point led to it (for
+        propagation: it is not connected to a seed through accepted points). Its
+        displacements, gradients and ZNCC are NaN and its iteration count 0.
+    LOW_ZNCC: IC-GN converged, but the ZNCC of the result is below the caller's acceptance
+        threshold, so the match is not trusted (a wrong basin, a damaged or occluded
+        subset). The converged estimate and its ZNCC are reported as they are.
     """
 
     CONVERGED = 0
@@ -60,6 +79,8 @@ class PointStatus(enum.IntEnum):
     OUT_OF_IMAGE = 2
     FLAT_SUBSET = 3
     DIVERGED = 4
+    NOT_REACHED = 5
+    LOW_ZNCC = 6
 
 
 _PENDING = -1
@@ -92,6 +113,28 @@ class ICGNResult:
     def ok(self) -> np.ndarray:
         """Boolean mask of converged points."""
         return self.status == PointStatus.CONVERGED
+
+
+@dataclass(frozen=True, eq=False)
+class PreparedTarget:
+    """A target image made ready for `ICGN.compute`: its pre-filtered spline coefficients.
+
+    Made by `ICGN.prepare_target`; pass it to `ICGN.compute` in place of the image to refine
+    the same target many times (different points, different guesses) without recomputing the
+    coefficients. It is tied to the pre-filter of the `ICGN` that made it (`compute` refuses
+    one made with another `prefilter_sigma`) and to the image shape, not to the prepared
+    reference or points: one prepared target serves every `ICGN` with that pre-filter.
+
+    Attributes:
+        coefficients: read-only float64 (H + 2 PAD, W + 2 PAD) padded cubic B-spline
+            coefficients of the pre-filtered image (`appliance.dic.bspline`).
+        shape: (H, W) of the image, px.
+        prefilter_sigma: the Gaussian pre-filter applied before the spline, px (0 = none).
+    """
+
+    coefficients: np.ndarray
+    shape: tuple[int, int]
+    prefilter_sigma: float
 
 
 @numba.njit(cache=True)
@@ -201,6 +244,7 @@ def _refine(
     width,
     height,
     points,
+    indices,
     half,
     fz,
     fx,
@@ -216,7 +260,8 @@ def _refine(
     iterations,
     status,
 ):
-    n = points.shape[0]
+    # Row m of params, zncc, iterations and status belongs to prepared point indices[m].
+    n = indices.shape[0]
     side = 2 * half + 1
     count = side * side
     blocks = (n + block - 1) // block
@@ -226,17 +271,18 @@ def _refine(
         g = np.empty(count)
         b = np.empty(6)
         dp = np.empty(6)
-        for k in range(blk * block, min(n, (blk + 1) * block)):
-            if status[k] != _PENDING:
+        for m in range(blk * block, min(n, (blk + 1) * block)):
+            if status[m] != _PENDING:
                 continue
+            k = indices[m]
             x0 = points[k, 0]
             y0 = points[k, 1]
-            u = params[k, 0]
-            ux = params[k, 1]
-            uy = params[k, 2]
-            v = params[k, 3]
-            vx = params[k, 4]
-            vy = params[k, 5]
+            u = params[m, 0]
+            ux = params[m, 1]
+            uy = params[m, 2]
+            v = params[m, 3]
+            vx = params[m, 4]
+            vy = params[m, 5]
             previous = np.inf
             outcome = 1
             done = 0
@@ -290,7 +336,7 @@ def _refine(
                         b[5] += ay * dy
                         idx += 1
                 cost /= df[k] * df[k]
-                zncc[k] = 1.0 - 0.5 * cost
+                zncc[m] = 1.0 - 0.5 * cost
                 for a in range(6):
                     s = 0.0
                     for c in range(6):
@@ -341,14 +387,14 @@ def _refine(
                     outcome = 0
                     break
                 previous = cost
-            params[k, 0] = u
-            params[k, 1] = ux
-            params[k, 2] = uy
-            params[k, 3] = v
-            params[k, 4] = vx
-            params[k, 5] = vy
-            iterations[k] = done
-            status[k] = outcome
+            params[m, 0] = u
+            params[m, 1] = ux
+            params[m, 2] = uy
+            params[m, 3] = v
+            params[m, 4] = vx
+            params[m, 5] = vy
+            iterations[m] = done
+            status[m] = outcome
 
 
 class ICGN:
@@ -357,6 +403,15 @@ class ICGN:
     Two-phase use, after OpenCorr: `prepare(reference, points)` once per reference image and
     set of points of interest (interpolant, reference subsets, steepest-descent images,
     inverse Hessians), then `compute(target, guess)` for every target image.
+
+    To refine one target in several batches (different points, or guesses that depend on
+    earlier results), prepare it once with `prepare_target(target)` and pass the
+    `PreparedTarget` to `compute` with `indices`, the prepared points to refine:
+
+        icgn.prepare(reference, points)
+        prepared = icgn.prepare_target(target)
+        first = icgn.compute(prepared, seed_guess, indices=[12])
+        more = icgn.compute(prepared, neighbour_guesses, indices=[11, 13, 2, 22])
 
     Args:
         subset: side S of the square subset, px (odd, >= 5).
@@ -411,6 +466,15 @@ class ICGN:
         """Half width h of the subset: offsets run over [-h, h]."""
         return self.subset // 2
 
+    @property
+    def points(self) -> np.ndarray:
+        """Read-only (n, 2) float64 view of the prepared points (x, y), px."""
+        if self._shape is None:
+            raise RuntimeError("prepare() must be called before the points are known")
+        view = self._points.view()
+        view.flags.writeable = False
+        return view
+
     def coefficients(self, image: np.ndarray) -> np.ndarray:
         """Spline coefficients of an image after the configured pre-filter."""
         data = np.asarray(image, dtype=np.float64)
@@ -432,7 +496,7 @@ class ICGN:
         """
         if reference.ndim != 2:
             raise ValueError(f"reference must be a 2-D grey image, got shape {reference.shape}")
-        pts = np.ascontiguousarray(points, dtype=np.float64)
+        pts = np.array(points, dtype=np.float64, order="C")
         if pts.ndim != 2 or pts.shape[1] != 2:
             raise ValueError(f"points must have shape (n, 2), got {pts.shape}")
         if not np.all(np.isfinite(pts)):
@@ -465,52 +529,84 @@ class ICGN:
         )
         return self._ready.copy()
 
-    def compute(self, target: np.ndarray, guess: np.ndarray | None = None) -> ICGNResult:
-        """Refine the displacements of the prepared points in a target image.
+    def prepare_target(self, target: np.ndarray) -> PreparedTarget:
+        """Pre-filter a target image and compute its spline coefficients, once.
+
+        This is the whole per-image cost of `compute` apart from the refinement itself (about
+        14 ms at 700 x 700 px, 140 ms at 2048 x 2048 px); a `PreparedTarget` can then be
+        refined any number of times. It does not need `prepare` to have been called.
 
         Args:
-            target: 2-D grey image with the reference's shape.
-            guess: initial estimate, (n, 2) as (u, v) or (n, 6) as (u, v, ux, uy, vx, vy);
-                None = zero. IC-GN converges from within about half a speckle of the truth;
-                use an integer search to get there.
+            target: 2-D grey image (H, W), any real dtype.
 
         Returns:
-            `ICGNResult` for the prepared points, in their order.
+            `PreparedTarget` with read-only coefficients.
+        """
+        image = np.asarray(target)
+        if image.ndim != 2:
+            raise ValueError(f"target must be a 2-D grey image, got shape {image.shape}")
+        coefficients = self.coefficients(image)
+        coefficients.flags.writeable = False
+        return PreparedTarget(
+            coefficients=coefficients,
+            shape=(int(image.shape[0]), int(image.shape[1])),
+            prefilter_sigma=float(self.prefilter_sigma),
+        )
+
+    def compute(
+        self,
+        target: np.ndarray | PreparedTarget,
+        guess: np.ndarray | None = None,
+        *,
+        indices: np.ndarray | None = None,
+    ) -> ICGNResult:
+        """Refine the displacements of prepared points in a target image.
+
+        Args:
+            target: 2-D grey image with the reference's shape, or a `PreparedTarget` of such
+                an image made by `prepare_target` (of this or another `ICGN` with the same
+                `prefilter_sigma`); an image is prepared on every call.
+            guess: initial estimate for the refined points, (m, 2) as (u, v) px or (m, 6) as
+                (u, v, ux, uy, vx, vy), m = len(indices) (all prepared points when indices is
+                None); None = zero. IC-GN converges from within about half a speckle of the
+                truth; use an integer search, or a neighbour's result, to get there.
+            indices: 1-D integer array of prepared point indices in [0, n) to refine, in any
+                order, repeats allowed; None = all n prepared points in their order. The
+                result of a point does not depend on which other points are refined with it.
+
+        Returns:
+            `ICGNResult` with one row per refined point, in the order of `indices` (of the
+            prepared points when indices is None).
         """
         if self._shape is None:
             raise RuntimeError("prepare() must be called before compute()")
-        if target.shape != self._shape:
-            raise ValueError(f"target shape {target.shape} differs from reference {self._shape}")
-        n = self._points.shape[0]
-        params = np.zeros((n, 6))
-        if guess is not None:
-            g = np.asarray(guess, dtype=np.float64)
-            if g.shape == (n, 2):
-                params[:, 0] = g[:, 0]
-                params[:, 3] = g[:, 1]
-            elif g.shape == (n, 6):
-                params[:, 0] = g[:, 0]
-                params[:, 3] = g[:, 1]
-                params[:, 1] = g[:, 2]
-                params[:, 2] = g[:, 3]
-                params[:, 4] = g[:, 4]
-                params[:, 5] = g[:, 5]
-            else:
-                raise ValueError(f"guess must have shape ({n}, 2) or ({n}, 6), got {g.shape}")
-            if not np.all(np.isfinite(params)):
-                raise ValueError("guess must be finite")
-        status = self._ready.copy()
-        zncc = np.full(n, np.nan)
-        iterations = np.zeros(n, dtype=np.int32)
+        prepared = target if isinstance(target, PreparedTarget) else None
+        shape = prepared.shape if prepared is not None else np.shape(target)
+        if tuple(shape) != self._shape:
+            raise ValueError(f"target shape {tuple(shape)} differs from reference {self._shape}")
+        if prepared is not None and prepared.prefilter_sigma != self.prefilter_sigma:
+            raise ValueError(
+                f"target was prepared with prefilter_sigma {prepared.prefilter_sigma}, "
+                f"this ICGN uses {self.prefilter_sigma}"
+            )
+        rows = self._indices(indices)
+        m = rows.shape[0]
+        params = self._initial_parameters(guess, m)
+        if prepared is None:
+            prepared = self.prepare_target(target)
+        status = self._ready[rows]
+        zncc = np.full(m, np.nan)
+        iterations = np.zeros(m, dtype=np.int32)
         height, width = self._shape
         threads = self.threads or numba.get_num_threads()
-        block = max(1, min(64, -(-n // (4 * threads))))
+        block = max(1, min(64, -(-m // (4 * threads))))
         self._with_threads(
             _refine,
-            self.coefficients(target),
+            prepared.coefficients,
             width,
             height,
             self._points,
+            rows,
             self.half,
             self._fz,
             self._fx,
@@ -537,6 +633,41 @@ class ICGN:
             iterations=iterations,
             status=status,
         )
+
+    def _indices(self, indices: np.ndarray | None) -> np.ndarray:
+        n = self._points.shape[0]
+        if indices is None:
+            return np.arange(n, dtype=np.int64)
+        rows = np.asarray(indices)
+        if rows.ndim != 1 or not (rows.size == 0 or np.issubdtype(rows.dtype, np.integer)):
+            raise ValueError(f"indices must be a 1-D integer array, got {rows.dtype} {rows.shape}")
+        rows = rows.astype(np.int64)
+        if rows.size and (rows.min() < 0 or rows.max() >= n):
+            raise ValueError(f"indices must lie in [0, {n}), got {rows.min()}..{rows.max()}")
+        return rows
+
+    @staticmethod
+    def _initial_parameters(guess: np.ndarray | None, m: int) -> np.ndarray:
+        """(m, 6) kernel parameters (u, ux, uy, v, vx, vy) from a guess in the public order."""
+        params = np.zeros((m, 6))
+        if guess is None:
+            return params
+        g = np.asarray(guess, dtype=np.float64)
+        if g.shape == (m, 2):
+            params[:, 0] = g[:, 0]
+            params[:, 3] = g[:, 1]
+        elif g.shape == (m, 6):
+            params[:, 0] = g[:, 0]
+            params[:, 3] = g[:, 1]
+            params[:, 1] = g[:, 2]
+            params[:, 2] = g[:, 3]
+            params[:, 4] = g[:, 4]
+            params[:, 5] = g[:, 5]
+        else:
+            raise ValueError(f"guess must have shape ({m}, 2) or ({m}, 6), got {g.shape}")
+        if not np.all(np.isfinite(params)):
+            raise ValueError("guess must be finite")
+        return params
 
     def _with_threads(self, kernel, *args) -> None:
         if self.threads is None:

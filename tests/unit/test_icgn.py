@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from appliance.dic.icgn import ICGN, PointStatus
+from appliance.dic.icgn import ICGN, ICGNResult, PointStatus, PreparedTarget
 from tests.unit.cosine_texture import CosineTexture
 
 SIZE = 200
@@ -149,3 +149,110 @@ def test_bad_arguments_are_named():
         icgn.compute(np.zeros((31, 30)))
     with pytest.raises(ValueError, match="guess"):
         icgn.compute(np.zeros((30, 30)), np.zeros((2, 2)))
+
+
+FIELDS = ("u", "v", "ux", "uy", "vx", "vy", "zncc", "iterations", "status")
+
+
+def assert_rows_identical(part: ICGNResult, whole: ICGNResult, rows: np.ndarray) -> None:
+    """Every field of `part` equals rows `rows` of `whole` bit for bit (NaN matching NaN)."""
+    for name in FIELDS:
+        a, b = getattr(part, name), getattr(whole, name)[rows]
+        assert a.dtype == b.dtype, name
+        assert np.array_equal(a, b, equal_nan=True), name
+
+
+@pytest.fixture(scope="module")
+def deformed_pair(texture):
+    """Reference, affinely deformed target and 49 points, a few of them out of the image."""
+    reference = texture.image(SIZE, SIZE)
+    target = texture.image(
+        SIZE, SIZE, inverse=affine_inverse(0.7, -0.4, 0.012, -0.006, 0.004, -0.01)
+    )
+    points = np.r_[grid(start=30, stop=171, step=20), [[4.0, 100.0], [100.0, 196.0]]]
+    return reference, target, points
+
+
+@pytest.mark.parametrize("prefilter_sigma", [0.0, 0.8])
+def test_prepared_target_gives_the_image_result_bit_for_bit(deformed_pair, prefilter_sigma):
+    reference, target, points = deformed_pair
+    icgn = ICGN(subset=21, prefilter_sigma=prefilter_sigma)
+    icgn.prepare(reference, points)
+    guess = np.tile([1.0, 0.0], (len(points), 1))
+    from_image = icgn.compute(target, guess)
+    prepared = icgn.prepare_target(target)
+    assert isinstance(prepared, PreparedTarget)
+    assert prepared.shape == (SIZE, SIZE) and prepared.prefilter_sigma == prefilter_sigma
+    assert not prepared.coefficients.flags.writeable
+    assert np.array_equal(prepared.coefficients, icgn.coefficients(target))
+    assert_rows_identical(icgn.compute(prepared, guess), from_image, np.arange(len(points)))
+    assert from_image.ok().sum() == len(points) - 2
+    assert np.all(from_image.status[-2:] == PointStatus.OUT_OF_IMAGE)
+
+
+def test_indices_refine_any_subset_bit_for_bit(deformed_pair):
+    """Subsets, any order and repeats give the rows of the full computation exactly."""
+    reference, target, points = deformed_pair
+    rng = np.random.default_rng(4)
+    n = len(points)
+    guess = np.c_[rng.integers(0, 2, (n, 2)), rng.normal(0.0, 0.01, (n, 4))]
+    icgn = ICGN(subset=21, threads=2)
+    icgn.prepare(reference, points)
+    prepared = icgn.prepare_target(target)
+    whole = icgn.compute(prepared, guess)
+    assert whole.ok().sum() == n - 2
+    for rows in (
+        np.array([3]),
+        np.array([n - 1, 0, 17, 17, n - 2, 5]),
+        rng.permutation(n),
+        np.arange(0, n, 7, dtype=np.int32),
+    ):
+        assert_rows_identical(icgn.compute(prepared, guess[rows], indices=rows), whole, rows)
+        single = ICGN(subset=21, threads=1)
+        single.prepare(reference, points)
+        assert_rows_identical(single.compute(target, guess[rows], indices=rows), whole, rows)
+    translation = icgn.compute(prepared, guess[[8, 2], :2], indices=[8, 2])
+    assert_rows_identical(translation, icgn.compute(prepared, guess[:, :2]), np.array([8, 2]))
+    empty = icgn.compute(prepared, np.zeros((0, 6)), indices=np.zeros(0, dtype=int))
+    assert empty.u.shape == (0,) and empty.status.shape == (0,)
+
+
+def test_one_prepared_target_serves_every_icgn_with_its_prefilter(deformed_pair):
+    reference, target, points = deformed_pair
+    first = ICGN(subset=21, prefilter_sigma=0.8)
+    first.prepare(reference, points[:10])
+    second = ICGN(subset=31, prefilter_sigma=0.8)
+    second.prepare(reference, points[10:30])
+    prepared = first.prepare_target(target)
+    assert_rows_identical(second.compute(prepared), second.compute(target), np.arange(20))
+    other = ICGN(subset=21)
+    other.prepare(reference, points[:10])
+    with pytest.raises(ValueError, match="prefilter_sigma"):
+        other.compute(prepared)
+
+
+def test_prepared_points_are_a_read_only_copy():
+    icgn = ICGN(subset=11)
+    with pytest.raises(RuntimeError, match="prepare"):
+        _ = icgn.points
+    points = np.array([[15.0, 15.0], [14.5, 16.0]])
+    icgn.prepare(np.random.default_rng(0).uniform(size=(30, 30)), points)
+    points[0, 0] = 99.0
+    assert np.array_equal(icgn.points, [[15.0, 15.0], [14.5, 16.0]])
+    assert not icgn.points.flags.writeable
+
+
+def test_bad_targets_and_indices_are_named():
+    rng = np.random.default_rng(0)
+    icgn = ICGN(subset=11)
+    icgn.prepare(rng.uniform(size=(30, 30)), np.array([[15.0, 15.0], [12.0, 14.0]]))
+    with pytest.raises(ValueError, match="2-D"):
+        icgn.prepare_target(np.zeros((3, 30, 30)))
+    with pytest.raises(ValueError, match="shape"):
+        icgn.compute(icgn.prepare_target(np.zeros((31, 30))))
+    target = icgn.prepare_target(rng.uniform(size=(30, 30)))
+    for bad in ([2], [-1], [0.0], [[0]], np.array([True, False])):
+        with pytest.raises(ValueError, match="indices"):
+            icgn.compute(target, indices=bad)
+    with pytest.raises(ValueError, match=r"guess must have shape \(1, 2\)"):
+        icgn.compute(target, np.zeros((2, 2)), indices=[1])

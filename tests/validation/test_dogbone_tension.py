@@ -11,8 +11,9 @@ the README's consistency checks, each of which a faulty tracker fails:
 Points: 5 columns x = 340, 380, ..., 500 (inside the gauge section, subsets clear of its
 edges) times 76 rows y = 300, 320, ..., 1800 of frame 151. Displacements reach 139 px along y,
 so every tracking starts from two seeds, at (420, 700) above and (420, 1700) below the neck,
-each found by normalised cross-correlation (+-200 px, a few pre-warps vy up to 0.3), and
-propagates from neighbour to neighbour (`dic_data.propagate`); points in the neck of frame 236,
+each found by the product's normalised cross-correlation search (`zncc_search`, +-200 px, a few
+pre-warps vy up to 0.3), and propagates from neighbour to neighbour
+(`appliance.dic.propagation`); points in the neck of frame 236,
 where the strain exceeds 50 % and the speckle changes, are rejected (ZNCC < 0.9 or no
 convergence) and not used.
 
@@ -26,6 +27,7 @@ import functools
 
 import numpy as np
 
+from appliance.dic.propagation import Neighbours
 from tests.validation import dic_data
 
 SUBSET = 41
@@ -47,21 +49,14 @@ def _frame(number: int) -> np.ndarray:
 def track(reference: np.ndarray, target: np.ndarray, points: np.ndarray):
     """Seed-and-propagate over the 5 x 76 grid whose reference positions are `points`."""
     seeds = [int(np.argmin(np.hypot(*(points - (420, row)).T))) for row in SEED_ROWS]
-    guesses = np.array(
-        [
-            dic_data.integer_seed(
-                reference, target, tuple(np.round(points[s]).astype(int)), SUBSET, 200, PREWARPS
-            )[0]
-            for s in seeds
-        ]
-    )
-    return dic_data.propagate(
+    return dic_data.seed_and_propagate(
         reference,
         target,
         points,
-        dic_data.grid_neighbours(len(YS), len(XS)),
+        Neighbours.grid(len(YS), len(XS)),
         seeds,
-        guesses,
+        search_radius=200,
+        prewarps=PREWARPS,
         min_zncc=0.9,
         subset=SUBSET,
         prefilter_sigma=PREFILTER_SIGMA,

@@ -16,9 +16,10 @@ size and, like both codes, on the raw images (no pre-filter), so that the compar
 for like. Points whose subset reaches the hole or leaves the specimen are skipped, the specimen
 and the hole being the DICe region of interest (`dice/roi_subset_file.dat`: a 313 x 977 px
 rectangle centred at (195, 517) and an excluded circle of radius 51 px at (194, 543)), with
-2 px of extra clearance from the hole's edge. Guesses come from one seed found by normalised
-cross-correlation and seed-and-propagate from neighbours (`dic_data.propagate`); frame 11 has v
-up to -12 px.
+2 px of extra clearance from the hole's edge. Guesses come from one seed found by the product's
+normalised cross-correlation search (`zncc_search`, +-20 px) and its seed-and-propagate from
+neighbours within 1.01 grid spacings (`appliance.dic.propagation`); frame 11 has v up to
+-12 px.
 
 Tolerance: median |difference| <= 0.01 px for u and for v separately, the README's "0.005 to
 0.01 px is realistic" upper end (two codes of the same family agree to 0.002 to 0.005 px).
@@ -29,6 +30,7 @@ import re
 import numpy as np
 import pytest
 
+from appliance.dic.propagation import Neighbours
 from tests.validation import dic_data
 
 TOLERANCE = 0.01
@@ -87,15 +89,13 @@ def track(frame: str, points: np.ndarray, subset: int, spacing: float):
     reference = dic_data.load_image("sample12", "oht_cfrp_00.png")
     target = dic_data.load_image("sample12", f"oht_cfrp_{frame}.png")
     seed = int(np.argmin(np.hypot(points[:, 0] - 195, points[:, 1] - 250)))
-    x, y = np.round(points[seed]).astype(int)
-    guess, _ = dic_data.integer_seed(reference, target, (x, y), subset, radius=20)
-    return dic_data.propagate(
+    return dic_data.seed_and_propagate(
         reference,
         target,
         points,
-        dic_data.neighbours_within(points, 1.01 * spacing),
+        Neighbours.within(points, 1.01 * spacing),
         [seed],
-        guess[None, :],
+        search_radius=20,
         min_zncc=0.9,
         subset=subset,
     )

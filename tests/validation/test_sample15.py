@@ -15,9 +15,9 @@ not 100 (`test_ramps_follow_the_truth_indexed_by_deformed_row` pins this). The t
 compare with v_ref(Y), the table re-indexed by Y = y - v(y) (monotonic) and interpolated.
 
 Guess: v reaches -9.6 px, far beyond the reach of IC-GN from zero, so one seed point is found by
-normalised cross-correlation (+-15 px) and the rest of the grid by seed-and-propagate
-(`dic_data.propagate`): each point starts from its best converged neighbour's first-order
-prediction, 10 px away along y.
+the product's normalised cross-correlation search (`zncc_search`, +-15 px) and the rest of the
+grid by its seed-and-propagate (`appliance.dic.propagation`): each point starts from its best
+accepted neighbour's first-order prediction, 10 px away along y.
 
 Parameters: subset 41 px (first-order exact on a plateau once the subset lies inside it, and
 large enough for the low-contrast texture), Gaussian pre-filter 0.8 px against the noise bias.
@@ -28,6 +28,7 @@ import functools
 import numpy as np
 
 from appliance.dic.icgn import ICGN
+from appliance.dic.propagation import Neighbours
 from tests.validation import dic_data
 
 SUBSET = 41
@@ -62,15 +63,13 @@ def _track():
     ys = np.arange(30, 971, 10)
     points = dic_data.grid_points(xs, ys)
     seed = int(np.argmin(np.hypot(points[:, 0] - 1100, points[:, 1] - 550)))
-    x, y = points[seed].astype(int)
-    guess, _ = dic_data.integer_seed(reference, target, (x, y), SUBSET, radius=15)
-    result = dic_data.propagate(
+    result = dic_data.seed_and_propagate(
         reference,
         target,
         points,
-        dic_data.grid_neighbours(len(ys), len(xs)),
+        Neighbours.grid(len(ys), len(xs)),
         [seed],
-        guess[None, :],
+        search_radius=15,
         min_zncc=0.9,
         subset=SUBSET,
         prefilter_sigma=PREFILTER_SIGMA,
