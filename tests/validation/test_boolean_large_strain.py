@@ -32,7 +32,7 @@ PREWARPS = tuple((ux, 0.0, 0.0, vy) for ux in np.arange(0.0, 0.61, 0.1) for vy i
 
 
 @pytest.mark.parametrize("percent", [30, 45])
-def test_gauge_strains_match_truth_within_0_1_percent_of_reading(percent):
+def test_gauge_strains_match_truth_within_0_1_percent_of_reading(percent, figures):
     """Axial gauge strain is eps and lateral gauge strain -0.3 eps, each within 0.1 % of reading.
 
     Points: X = 20, 60, ..., 2460 (62 columns, all inside the textured part) times
@@ -77,6 +77,8 @@ def test_gauge_strains_match_truth_within_0_1_percent_of_reading(percent):
 
     axial = gauge(big_x <= 100, big_x >= 2380, big_x, small_x)
     lateral = gauge(big_y == 40, big_y == 460, big_y, small_y)
+    figures.record("axial gauge strain", axial, f"{eps} +- 0.1 % of reading")
+    figures.record("lateral gauge strain", lateral, f"{-0.3 * eps:.3f} +- 0.1 % of reading")
     assert abs(axial - eps) <= TOLERANCE * eps, f"axial strain {axial:.6f}, truth {eps}"
     assert abs(lateral + 0.3 * eps) <= TOLERANCE * 0.3 * eps, (
         f"lateral strain {lateral:.6f}, truth {-0.3 * eps:.6f}"

@@ -82,7 +82,7 @@ def row_mean_v(result, row: int) -> float:
     return float(v.mean())
 
 
-def test_two_gauge_lengths_agree_before_necking():
+def test_two_gauge_lengths_agree_before_necking(figures):
     """151 -> 199: concentric gauges 300 px and 180 px long read the same strain within 1 %.
 
     Uniform zone: rows 400..700 of frame 151, in the straight gauge section (rows 250..1700,
@@ -102,13 +102,15 @@ def test_two_gauge_lengths_agree_before_necking():
 
     long_gauge = strain(400, 700)
     short_gauge = strain(460, 640)
+    figures.record("strain, gauge 400..700", long_gauge, "reference for the next")
+    figures.record("strain, gauge 460..640", short_gauge, f"within {CLASS_1:.0%} of the first")
     assert long_gauge > 0.01, f"no stretch measured: {long_gauge:.5f}"
     assert abs(short_gauge - long_gauge) <= CLASS_1 * long_gauge, (
         f"gauge 400..700 reads {long_gauge:.5f}, gauge 460..640 reads {short_gauge:.5f}"
     )
 
 
-def test_direct_and_incremental_tracking_agree_at_gauge_points():
+def test_direct_and_incremental_tracking_agree_at_gauge_points(figures):
     """151 -> 236 directly and via 199 put the gauge points at the same place within 0.01 px.
 
     Gauge points: the 20 points of rows 400, 700 (above the neck) and 1600, 1700 (below it)
@@ -125,6 +127,8 @@ def test_direct_and_incremental_tracking_agree_at_gauge_points():
     assert tracked[gauge].all(), f"gauge points not tracked: {points[gauge & ~tracked]}"
     du = np.abs(first.u + second.u - direct.u)[gauge]
     dv = np.abs(first.v + second.v - direct.v)[gauge]
+    figures.record("largest |du| direct vs incremental, px", du.max(), f"<= {POINT_TOLERANCE}")
+    figures.record("largest |dv| direct vs incremental, px", dv.max(), f"<= {POINT_TOLERANCE}")
     assert du.max() <= POINT_TOLERANCE and dv.max() <= POINT_TOLERANCE, (
         f"largest difference: u {du.max():.4f} px, v {dv.max():.4f} px"
     )

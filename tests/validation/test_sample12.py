@@ -101,17 +101,19 @@ def track(frame: str, points: np.ndarray, subset: int, spacing: float):
     )
 
 
-def assert_medians(label: str, result, u_ref: np.ndarray, v_ref: np.ndarray) -> None:
+def assert_medians(label: str, result, u_ref: np.ndarray, v_ref: np.ndarray, figures) -> None:
     ok = result.ok()
     assert ok.mean() >= 0.95, f"{label}: only {ok.sum()} of {ok.size} points tracked"
     du = np.median(np.abs(result.u[ok] - u_ref[ok]))
     dv = np.median(np.abs(result.v[ok] - v_ref[ok]))
+    figures.record(f"{label}: median |du|, px, {ok.sum()} points", du, f"<= {TOLERANCE}")
+    figures.record(f"{label}: median |dv|, px, {ok.sum()} points", dv, f"<= {TOLERANCE}")
     assert du <= TOLERANCE and dv <= TOLERANCE, (
         f"{label}: median |du| {du:.4f} px, |dv| {dv:.4f} px over {ok.sum()} points"
     )
 
 
-def test_frame04_agrees_with_opencorr():
+def test_frame04_agrees_with_opencorr(figures):
     """Frame 04: median |difference| to OpenCorr <= 0.01 px in u and in v.
 
     Compared at 1030 of OpenCorr's 1200 points (the other 170 have subsets reaching the hole;
@@ -122,11 +124,11 @@ def test_frame04_agrees_with_opencorr():
     keep = usable(points, OPENCORR_SUBSET // 2)
     assert keep.sum() >= 1000, f"only {keep.sum()} OpenCorr points usable"
     result = track("04", points[keep], OPENCORR_SUBSET, spacing=10.0)
-    assert_medians("OpenCorr frame 04", result, table[keep, 2], table[keep, 3])
+    assert_medians("OpenCorr frame 04", result, table[keep, 2], table[keep, 3], figures)
 
 
 @pytest.mark.parametrize("frame", ["04", "08", "11"])
-def test_agrees_with_dice(frame):
+def test_agrees_with_dice(frame, figures):
     """Frames 04, 08, 11: median |difference| to DICe <= 0.01 px in u and in v.
 
     Compared at 203 of DICe's 230 points, subset 27 as DICe: the other 27 form the column
@@ -138,4 +140,4 @@ def test_agrees_with_dice(frame):
     keep = usable(points, DICE_SUBSET // 2)
     assert keep.sum() >= 200, f"only {keep.sum()} DICe points usable"
     result = track(frame, points[keep], DICE_SUBSET, spacing=35.0)
-    assert_medians(f"DICe frame {frame}", result, table[keep, 2], table[keep, 3])
+    assert_medians(f"DICe frame {frame}", result, table[keep, 2], table[keep, 3], figures)

@@ -38,7 +38,7 @@ TRUTH_COLUMN = {"L1": 1, "L5": 5}
 
 
 @pytest.mark.parametrize("level", ["L1", "L5"])
-def test_chirp_amplitude_is_recovered_within_5_percent(level):
+def test_chirp_amplitude_is_recovered_within_5_percent(level, figures):
     """The recovered chirp amplitude is 0.1 px within 5 %, on the pre-filtered images.
 
     Points: 387 columns x = 105, 110, ..., 2035 (all of the chirp, x > 100) times 11 rows
@@ -61,6 +61,7 @@ def test_chirp_amplitude_is_recovered_within_5_percent(level):
     u_true = np.interp(points[ok, 0], truth[:, 0], truth[:, TRUTH_COLUMN[level]])
     scale = (result.u[ok] @ u_true) / (u_true @ u_true)
     amplitude = AMPLITUDE * scale
+    figures.record(f"{level} chirp amplitude, px", amplitude, "0.1 +- 5 %")
     assert abs(amplitude - AMPLITUDE) <= TOLERANCE * AMPLITUDE, (
         f"{level}: recovered amplitude {amplitude:.4f} px, truth {AMPLITUDE} px"
     )

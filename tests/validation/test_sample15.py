@@ -77,7 +77,7 @@ def _track():
     return points, result, (len(ys), len(xs))
 
 
-def test_plateaus_match_truth_within_0_03_px():
+def test_plateaus_match_truth_within_0_03_px(figures):
     """On the plateaus, v matches the published truth within 0.03 px and u is zero.
 
     Points: 10 columns x = 100, 300, ..., 1900 times 95 rows Y = 30, 40, ..., 970 (every subset
@@ -101,17 +101,20 @@ def test_plateaus_match_truth_within_0_03_px():
     assert counted.sum() >= 30, f"only {counted.sum()} plateau rows measured"
     row_error = np.nanmean(error[counted], axis=1)
     worst = int(np.argmax(np.abs(row_error)))
+    figures.record("worst plateau row error, px", row_error[worst], f"<= {PLATEAU_TOLERANCE}")
     assert abs(row_error[worst]) <= PLATEAU_TOLERANCE, (
         f"plateau row Y = {rows.reshape(shape)[counted][worst, 0]}: mean v off by "
         f"{row_error[worst]:+.4f} px"
     )
     v_rms = np.sqrt(np.nanmean(error**2))
     u_rms = np.sqrt(np.mean(result.u[ok] ** 2))
+    figures.record("RMS v error on plateaus, px", v_rms, f"<= {POINT_RMS_TOLERANCE}")
+    figures.record("RMS u (truth 0), px", u_rms, f"<= {POINT_RMS_TOLERANCE}")
     assert v_rms <= POINT_RMS_TOLERANCE, f"plateau points: RMS v error {v_rms:.4f} px"
     assert u_rms <= POINT_RMS_TOLERANCE, f"all points: RMS u {u_rms:.4f} px (truth 0)"
 
 
-def test_ramps_follow_the_truth_indexed_by_deformed_row():
+def test_ramps_follow_the_truth_indexed_by_deformed_row(figures):
     """On the steep ramps, v matches the table read at the deformed row within 0.03 px.
 
     This pins the reading of truth.csv used above. Rows Y = 40, 45, ..., 95 and 440, ..., 495
@@ -142,6 +145,7 @@ def test_ramps_follow_the_truth_indexed_by_deformed_row():
     measured = np.nanmedian(np.where(ok, result.v, np.nan).reshape(len(rows), len(xs)), axis=1)
     error = measured - deformed_reading
     worst = int(np.argmax(np.abs(error)))
+    figures.record("worst ramp row error, px", error[worst], f"<= {PLATEAU_TOLERANCE}")
     assert abs(error[worst]) <= PLATEAU_TOLERANCE, (
         f"ramp row Y = {rows[worst]}: v {measured[worst]:.4f} px, truth read at the deformed "
         f"row {deformed_reading[worst]:.4f} px, at the reference row "
