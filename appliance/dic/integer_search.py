@@ -62,7 +62,7 @@ width) from counting as competitors.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -609,14 +609,25 @@ def _lpq_cost_maps(
             counts = np.bincount(ref_codes.get(*ref_boxes[row]).ravel(), minlength=N_BINS)
             yield int(k), _chi_map(region, counts, subset, weighting), None
             continue
-        best: tuple[np.ndarray, np.ndarray] | None = None
-        for warp in warps:
+
+        def lpq_cost(warp: np.ndarray, k: int = k, region: np.ndarray = region) -> np.ndarray:
             patch = _warp_template(ref32, int(layout.cx[k]), int(layout.cy[k]), size, warp)
             counts = np.bincount(lpq_codes(patch, params, border="valid").ravel(), minlength=N_BINS)
-            cost = _chi_map(region, counts, subset, weighting)
-            if best is None or cost.min() < best[0].min():
-                best = (cost, warp)
-        yield int(k), best[0], best[1]
+            return _chi_map(region, counts, subset, weighting)
+
+        yield (int(k), *_best_over_warps(warps, lpq_cost))
+
+
+def _best_over_warps(
+    warps: np.ndarray, cost_of: Callable[[np.ndarray], np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """The cost map with the lowest minimum over the pre-warps, and that pre-warp."""
+    best_cost, best_warp = cost_of(warps[0]), warps[0]
+    for warp in warps[1:]:
+        cost = cost_of(warp)
+        if cost.min() < best_cost.min():
+            best_cost, best_warp = cost, warp
+    return best_cost, best_warp
 
 
 def _zncc_cost_maps(
@@ -645,15 +656,16 @@ def _zncc_cost_maps(
             zncc = cv2.matchTemplate(window, template, cv2.TM_CCOEFF_NORMED)
             yield int(k), 1.0 - zncc.astype(np.float64), None
             continue
-        best: tuple[np.ndarray, np.ndarray] | None = None
-        for warp in warps:
+
+        def zncc_cost(
+            warp: np.ndarray, cx: int = cx, cy: int = cy, window: np.ndarray = window
+        ) -> np.ndarray:
             template = _warp_template(ref32, cx, cy, subset, warp)
-            cost = 1.0 - cv2.matchTemplate(window, template, cv2.TM_CCOEFF_NORMED).astype(
+            return 1.0 - cv2.matchTemplate(window, template, cv2.TM_CCOEFF_NORMED).astype(
                 np.float64
             )
-            if best is None or cost.min() < best[0].min():
-                best = (cost, warp)
-        yield int(k), best[0], best[1]
+
+        yield (int(k), *_best_over_warps(warps, zncc_cost))
 
 
 def lpq_search(
