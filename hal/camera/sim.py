@@ -1,0 +1,185 @@
+"""Simulated camera: the `Camera` protocol over a rendered `Scene` and a shared `SimClock`.
+
+URL: `sim://camera` (the path is free text). Constructed by the registry as
+`SimCamera(url, scene=..., clock=..., seed=..., read_noise=..., full_well_ratio=...)`.
+
+What it models: exposure timing for INTERNAL (fixed rate), SOFTWARE and EXTERNAL triggers
+(an external edge is delivered by `external_edge(t_s)`, as a trigger microcontroller would);
+exposure integration (the scene renders over [start, start + exposure]); gain as a factor on
+the signal; Gaussian read noise and Poisson shot noise; quantisation to Mono8 or Mono12/16
+with clipping; the sensor region; frame ids and device timestamps (start of exposure, ns, from
+the simulation clock).
+
+What it does not model: lens distortion, vignetting, rolling shutter, dark current and fixed
+pattern noise, dropped or corrupted frames, transport latency or bandwidth limits, trigger
+jitter (edges are exact), or readout time limiting the frame rate.
+"""
+
+from __future__ import annotations
+
+import collections
+from typing import Any
+
+import numpy as np
+
+from hal.camera.base import (
+    CameraSettings,
+    Frame,
+    PixelFormat,
+    Region,
+    Scene,
+    TriggerInfo,
+    TriggerMode,
+)
+from hal.clock import SimClock
+from hal.errors import HardwareConfigError, HardwareTimeout
+
+
+class SimCamera:
+    """A camera that renders its `Scene` at every trigger.
+
+    Args:
+        url: the device URL (kept for messages).
+        scene: what the camera sees.
+        clock: the shared simulation clock.
+        seed: seed of the noise generator (frames are reproducible for a seed).
+        read_noise: standard deviation of the read noise, grey levels on the 8-bit scale.
+        electrons_per_grey: conversion gain for shot noise at unit gain (8-bit scale); 0 =
+            no shot noise.
+    """
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        scene: Scene,
+        clock: SimClock,
+        seed: int = 0,
+        read_noise: float = 0.5,
+        electrons_per_grey: float = 40.0,
+        **_: Any,
+    ) -> None:
+        self.url = url
+        self._scene = scene
+        self._clock = clock
+        self._rng = np.random.default_rng(seed)
+        self._read_noise = read_noise
+        self._electrons_per_grey = electrons_per_grey
+        self._settings = CameraSettings(exposure_us=1000.0)
+        self._trigger = TriggerInfo(mode=TriggerMode.SOFTWARE)
+        self._open = False
+        self._armed = False
+        self._pending: collections.deque[float] = collections.deque()
+        self._next_internal_s = 0.0
+        self._delivered = 0
+        self._frame_id = 0
+
+    @property
+    def sensor_size(self) -> tuple[int, int]:
+        """Sensor (width, height), px."""
+        return self._scene.sensor_width, self._scene.sensor_height
+
+    def open(self, timeout_s: float = 5.0) -> None:
+        self._open = True
+
+    def close(self) -> None:
+        self._armed = False
+        self._open = False
+
+    def configure(self, settings: CameraSettings) -> CameraSettings:
+        if self._armed:
+            raise HardwareConfigError(f"{self.url}: cannot configure while armed")
+        region = settings.region or Region(0, 0, *self.sensor_size)
+        width, height = self.sensor_size
+        if region.x + region.width > width or region.y + region.height > height:
+            raise HardwareConfigError(
+                f"{self.url}: region {region} exceeds the {width}x{height} sensor"
+            )
+        self._settings = CameraSettings(
+            exposure_us=settings.exposure_us,
+            gain_db=settings.gain_db,
+            region=region,
+            pixel_format=settings.pixel_format,
+        )
+        return self._settings
+
+    def prepare(self, trigger: TriggerInfo) -> None:
+        if self._armed:
+            raise HardwareConfigError(f"{self.url}: cannot prepare while armed")
+        self._trigger = trigger
+        if trigger.exposure_us is not None:
+            self._settings = CameraSettings(
+                exposure_us=trigger.exposure_us,
+                gain_db=self._settings.gain_db,
+                region=self._settings.region,
+                pixel_format=self._settings.pixel_format,
+            )
+
+    def arm(self) -> None:
+        if not self._open:
+            raise HardwareConfigError(f"{self.url}: arm before open")
+        self._armed = True
+        self._pending.clear()
+        self._delivered = 0
+        self._next_internal_s = self._clock.now_s()
+
+    def disarm(self) -> None:
+        self._armed = False
+        self._pending.clear()
+
+    def trigger(self) -> None:
+        if self._trigger.mode is not TriggerMode.SOFTWARE:
+            raise HardwareConfigError(
+                f"{self.url}: software trigger in {self._trigger.mode.value} mode"
+            )
+        self._pending.append(self._clock.now_s())
+
+    def external_edge(self, t_s: float) -> None:
+        """An edge on the trigger input at simulation time `t_s` (EXTERNAL mode)."""
+        if self._armed and self._trigger.mode is TriggerMode.EXTERNAL:
+            self._pending.append(t_s)
+
+    def fetch(self, timeout_s: float) -> Frame:
+        if not self._armed:
+            raise HardwareConfigError(f"{self.url}: fetch while not armed")
+        if self._trigger.frames and self._delivered >= self._trigger.frames:
+            raise HardwareTimeout(f"{self.url}: all {self._trigger.frames} frames delivered")
+        start = self._next_start(timeout_s)
+        exposure_s = self._settings.exposure_us * 1e-6
+        self._clock.wait_until(start + exposure_s)
+        region = self._settings.region or Region(0, 0, *self.sensor_size)
+        signal, truth = self._scene.render(start, start + exposure_s, region)
+        image = self._digitise(signal)
+        frame = Frame(
+            image=image,
+            frame_id=self._frame_id,
+            timestamp_ns=int(round(start * 1e9)),
+            exposure_us=self._settings.exposure_us,
+            metadata={"truth": truth},
+        )
+        self._frame_id += 1
+        self._delivered += 1
+        return frame
+
+    def _next_start(self, timeout_s: float) -> float:
+        mode = self._trigger.mode
+        if mode is TriggerMode.INTERNAL:
+            start = self._next_internal_s
+            self._next_internal_s = start + 1.0 / float(self._trigger.rate_hz)
+            return start
+        if not self._pending:
+            self._clock.wait_until(self._clock.now_s() + timeout_s)
+            raise HardwareTimeout(f"{self.url}: no trigger within {timeout_s:g} s")
+        return self._pending.popleft()
+
+    def _digitise(self, signal: np.ndarray) -> np.ndarray:
+        fmt = self._settings.pixel_format
+        gain = 10.0 ** (self._settings.gain_db / 20.0)
+        grey = np.asarray(signal, dtype=np.float64) * gain
+        if self._electrons_per_grey > 0:
+            electrons = np.clip(grey, 0.0, None) * self._electrons_per_grey
+            grey = self._rng.poisson(electrons) / self._electrons_per_grey
+        if self._read_noise > 0:
+            grey = grey + self._rng.normal(0.0, self._read_noise, grey.shape)
+        counts = np.clip(np.rint(grey * (fmt.max_value + 1) / 256.0), 0, fmt.max_value)
+        return counts.astype(np.uint8 if fmt is PixelFormat.MONO8 else np.uint16)

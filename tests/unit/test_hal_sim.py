@@ -1,0 +1,169 @@
+import numpy as np
+import pytest
+
+from hal.camera.base import CameraSettings, PixelFormat, Region, TriggerInfo, TriggerMode
+from hal.clock import Pace, SimClock
+from hal.errors import HardwareConfigError, HardwareTimeout
+from hal.frame.base import FrameState
+from hal.registry import camera_from_url, frame_from_url
+
+
+class RampScene:
+    """Grey level = 100 + 10 * (mid-exposure time in s), plus the column index."""
+
+    sensor_width = 64
+    sensor_height = 48
+
+    def __init__(self):
+        self.calls = []
+
+    def render(self, start_s, stop_s, region):
+        self.calls.append((start_s, stop_s, region))
+        mid = 0.5 * (start_s + stop_s)
+        cols = np.arange(region.x, region.x + region.width, dtype=float)
+        image = np.tile(100.0 + 10.0 * mid + cols, (region.height, 1))
+        return image, {"mid_s": mid}
+
+
+class LinearMachine:
+    def __init__(self):
+        self.speed = 0.0
+        self.t0 = 0.0
+        self.x0 = 0.0
+
+    def state(self, t_s):
+        x = self.x0 + self.speed / 60.0 * (t_s - self.t0)
+        return FrameState(x, self.speed, 2.0 * x, self.speed != 0, int(t_s * 1e9))
+
+    def start(self, speed_mm_min, t_s):
+        self.x0, self.t0, self.speed = self.state(t_s).crosshead_mm, t_s, speed_mm_min
+
+    def stop(self, t_s):
+        self.start(0.0, t_s)
+
+    def return_to_start(self, speed_mm_min, t_s):
+        self.start(-abs(speed_mm_min), t_s)
+
+
+def noiseless_camera(scene, clock, **kwargs):
+    camera = camera_from_url(
+        "sim://camera", scene=scene, clock=clock, read_noise=0.0, electrons_per_grey=0.0, **kwargs
+    )
+    camera.open()
+    return camera
+
+
+def test_internal_trigger_timestamps_exposure_and_values():
+    clock, scene = SimClock(), RampScene()
+    camera = noiseless_camera(scene, clock)
+    camera.configure(CameraSettings(exposure_us=2000.0))
+    camera.prepare(TriggerInfo(mode=TriggerMode.INTERNAL, rate_hz=50.0, frames=3))
+    camera.arm()
+    frames = [camera.fetch(1.0) for _ in range(3)]
+    assert [f.frame_id for f in frames] == [0, 1, 2]
+    assert [f.timestamp_ns for f in frames] == [0, 20_000_000, 40_000_000]
+    assert frames[1].image.dtype == np.uint8 and frames[1].image.shape == (48, 64)
+    assert frames[1].image[0, 5] == round(100 + 10 * 0.021 + 5)
+    assert clock.now_s() == pytest.approx(0.042)
+    with pytest.raises(HardwareTimeout):
+        camera.fetch(0.1)
+
+
+def test_software_and_external_triggers():
+    clock, scene = SimClock(), RampScene()
+    camera = noiseless_camera(scene, clock)
+    camera.prepare(TriggerInfo(mode=TriggerMode.SOFTWARE))
+    camera.arm()
+    with pytest.raises(HardwareTimeout, match="no trigger"):
+        camera.fetch(0.5)
+    assert clock.now_s() == pytest.approx(0.5)
+    camera.trigger()
+    assert camera.fetch(0.5).timestamp_ns == 500_000_000
+    camera.disarm()
+    camera.prepare(TriggerInfo(mode=TriggerMode.EXTERNAL))
+    camera.arm()
+    with pytest.raises(HardwareConfigError, match="software trigger"):
+        camera.trigger()
+    camera.external_edge(1.25)
+    frame = camera.fetch(0.5)
+    assert frame.timestamp_ns == 1_250_000_000
+    assert frame.metadata["truth"]["mid_s"] == pytest.approx(1.25 + 0.0005)
+
+
+def test_region_pixel_formats_and_settings_guard():
+    clock, scene = SimClock(), RampScene()
+    camera = noiseless_camera(scene, clock)
+    applied = camera.configure(
+        CameraSettings(
+            exposure_us=100.0, region=Region(10, 4, 20, 8), pixel_format=PixelFormat.MONO12
+        )
+    )
+    assert applied.region == Region(10, 4, 20, 8)
+    camera.prepare(TriggerInfo(mode=TriggerMode.INTERNAL, rate_hz=10.0))
+    camera.arm()
+    frame = camera.fetch(1.0)
+    assert frame.image.shape == (8, 20) and frame.image.dtype == np.uint16
+    assert frame.image[0, 0] == round((100 + 10 * 0.00005 + 10) * 16)
+    with pytest.raises(HardwareConfigError, match="armed"):
+        camera.configure(CameraSettings(exposure_us=10.0))
+    camera.disarm()
+    with pytest.raises(HardwareConfigError, match="exceeds"):
+        camera.configure(CameraSettings(exposure_us=10.0, region=Region(60, 0, 10, 10)))
+
+
+def test_noise_is_seeded_and_has_the_requested_level():
+    def grab(seed):
+        camera = camera_from_url(
+            "sim://camera",
+            scene=RampScene(),
+            clock=SimClock(),
+            seed=seed,
+            read_noise=2.0,
+            electrons_per_grey=0.0,
+        )
+        camera.open()
+        camera.configure(CameraSettings(exposure_us=10.0, pixel_format=PixelFormat.MONO16))
+        camera.prepare(TriggerInfo(mode=TriggerMode.INTERNAL, rate_hz=1.0))
+        camera.arm()
+        return camera.fetch(1.0).image.astype(float) / 256.0
+
+    a, b, c = grab(1), grab(1), grab(2)
+    assert np.array_equal(a, b) and not np.array_equal(a, c)
+    clean = np.tile(100.0 + 10 * 5e-6 + np.arange(64.0), (48, 1))
+    assert np.std(a - clean) == pytest.approx(2.0, rel=0.1)
+
+
+def test_sim_frame_reads_the_shared_clock_and_obeys_configuration():
+    clock, machine = SimClock(), LinearMachine()
+    frame = frame_from_url("sim://frame", machine=machine, clock=clock)
+    frame.open()
+    frame.start(60.0)
+    clock.wait_until(2.0)
+    state = frame.read_state()
+    assert state.crosshead_mm == pytest.approx(2.0) and state.running
+    assert state.timestamp_ns == 2_000_000_000
+    locked = frame_from_url("sim://frame", machine=machine, clock=clock, accepts_commands=False)
+    with pytest.raises(HardwareConfigError, match="command stop"):
+        locked.stop()
+
+
+def test_registry_names_the_bad_url():
+    with pytest.raises(HardwareConfigError, match="unknown scheme gige://"):
+        camera_from_url("gige://1.2.3.4")
+    with pytest.raises(HardwareConfigError, match="no scheme"):
+        frame_from_url("localhost:502")
+
+
+def test_real_time_clock_sleeps_with_the_injected_sleep():
+    now = [100.0]
+    slept = []
+
+    def sleep(seconds):
+        slept.append(seconds)
+        now[0] += seconds
+
+    clock = SimClock(Pace.REAL_TIME, wall=lambda: now[0], sleep=sleep)
+    clock.wait_until(0.25)
+    assert slept == [pytest.approx(0.25)] and clock.now_s() == pytest.approx(0.25)
+    clock.wait_until(0.1)
+    assert len(slept) == 1
