@@ -1,0 +1,221 @@
+"""Gauges: from tracked point positions to gauge lengths, strains and elongation.
+
+An extensometer measures between *marks*. Each mark here is a small cluster of tracked points
+whose mean position is the mark's position, so one noisy or lost point does not move the mark
+much, and a line of points across the specimen averages over its width. An axial gauge is two
+marks along the loading axis; a transverse gauge two marks across it.
+
+Strains are always referred to the original gauge length L0 (at the reference image), whatever
+the tracker does in between (reference updates, re-acquisition):
+
+    engineering strain   e = (L - L0) / L0
+    true strain          eps = ln(1 + e)
+    elongation           dL = (L - L0) * scale_mm_per_px
+    Poisson's ratio      nu = -e_transverse / e_axial   (reported once |e_axial| >= 1e-4)
+
+Calibration: `scale_mm_per_px` from the optics (pixel size / magnification, see
+`appliance.optics`) or from a known distance in the image.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+POISSON_MIN_AXIAL_STRAIN = 1e-4
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Pixel-to-millimetre scale of the object plane."""
+
+    scale_mm_per_px: float
+
+    def __post_init__(self) -> None:
+        if not (self.scale_mm_per_px > 0 and math.isfinite(self.scale_mm_per_px)):
+            raise ValueError(f"scale_mm_per_px must be finite and > 0, got {self.scale_mm_per_px}")
+
+    @classmethod
+    def from_known_distance(cls, distance_mm: float, distance_px: float) -> Calibration:
+        """Scale from a distance known in mm and measured in px."""
+        if not (distance_mm > 0 and distance_px > 0):
+            raise ValueError("known distance must be > 0 in mm and in px")
+        return cls(distance_mm / distance_px)
+
+    @classmethod
+    def from_optics(cls, pixel_size_um: float, magnification: float) -> Calibration:
+        """Scale of a camera with the given pixel pitch and lateral magnification."""
+        if not (pixel_size_um > 0 and magnification > 0):
+            raise ValueError("pixel_size_um and magnification must be > 0")
+        return cls(pixel_size_um * 1e-3 / magnification)
+
+
+@dataclass(frozen=True)
+class Gauge:
+    """Two marks, each a list of indices into the tracked points.
+
+    Attributes:
+        first, second: point indices of each mark (non-empty, disjoint).
+    """
+
+    first: tuple[int, ...]
+    second: tuple[int, ...]
+
+    def __post_init__(self) -> None:
+        if not self.first or not self.second:
+            raise ValueError("each mark of a gauge needs at least one point")
+        if set(self.first) & set(self.second):
+            raise ValueError("the two marks of a gauge share points")
+
+    def length_px(self, positions: np.ndarray, valid: np.ndarray | None = None) -> float:
+        """Distance between the mark centroids, px; NaN when a mark has no valid point.
+
+        Args:
+            positions: (n, 2) current positions (x, y) of all tracked points.
+            valid: (n,) mask of points that may be used; None = all.
+        """
+        ends = []
+        for mark in (self.first, self.second):
+            index = np.asarray(mark)
+            if valid is not None:
+                index = index[valid[index]]
+            if index.size == 0:
+                return math.nan
+            ends.append(positions[index].mean(axis=0))
+        return float(np.hypot(*(ends[1] - ends[0])))
+
+
+@dataclass(frozen=True)
+class StrainReading:
+    """Strain of one frame, all referred to the original gauge lengths."""
+
+    axial_px: float
+    engineering_strain: float
+    true_strain: float
+    elongation_mm: float
+    gauge_length_mm: float
+    transverse_strain: float
+    poisson_ratio: float
+
+
+class StrainGauges:
+    """Axial (and optionally transverse) gauge on a set of tracked points.
+
+    Args:
+        axial: the axial gauge.
+        reference_positions: (n, 2) positions of all points in the reference image, px;
+            they define L0.
+        calibration: px -> mm.
+        transverse: optional transverse gauge.
+    """
+
+    def __init__(
+        self,
+        axial: Gauge,
+        reference_positions: np.ndarray,
+        calibration: Calibration,
+        transverse: Gauge | None = None,
+    ) -> None:
+        self.axial = axial
+        self.transverse = transverse
+        self.calibration = calibration
+        self.axial_l0_px = axial.length_px(reference_positions)
+        if not self.axial_l0_px > 0:
+            raise ValueError("axial gauge has zero length in the reference image")
+        self.transverse_l0_px = (
+            transverse.length_px(reference_positions) if transverse is not None else math.nan
+        )
+
+    @property
+    def gauge_length_mm(self) -> float:
+        """Original axial gauge length L0, mm."""
+        return self.axial_l0_px * self.calibration.scale_mm_per_px
+
+    def read(self, positions: np.ndarray, valid: np.ndarray | None = None) -> StrainReading:
+        """Strains for current positions (n, 2) px; NaN where a mark has no valid point."""
+        length = self.axial.length_px(positions, valid)
+        strain = (length - self.axial_l0_px) / self.axial_l0_px
+        transverse = math.nan
+        if self.transverse is not None:
+            width = self.transverse.length_px(positions, valid)
+            transverse = (width - self.transverse_l0_px) / self.transverse_l0_px
+        poisson = (
+            -transverse / strain
+            if abs(strain) >= POISSON_MIN_AXIAL_STRAIN and math.isfinite(transverse)
+            else math.nan
+        )
+        scale = self.calibration.scale_mm_per_px
+        return StrainReading(
+            axial_px=length,
+            engineering_strain=strain,
+            true_strain=math.log1p(strain) if strain > -1 else math.nan,
+            elongation_mm=(length - self.axial_l0_px) * scale,
+            gauge_length_mm=length * scale,
+            transverse_strain=transverse,
+            poisson_ratio=poisson,
+        )
+
+
+@dataclass(frozen=True)
+class StrainGaugesLayout:
+    """Which tracked points form the axial gauge and the optional transverse gauge."""
+
+    axial: Gauge
+    transverse: Gauge | None
+
+
+def place_marks(
+    centre_px: tuple[float, float],
+    gauge_length_mm: float,
+    calibration: Calibration,
+    *,
+    axis_deg: float = 90.0,
+    mark_width_px: float = 40.0,
+    points_per_mark: int = 3,
+    transverse_width_mm: float | None = None,
+) -> tuple[np.ndarray, StrainGaugesLayout]:
+    """Place gauge marks automatically, centred on the specimen.
+
+    Each axial mark is a line of `points_per_mark` points across the specimen, `mark_width_px`
+    long, at +- L0/2 from the centre along the loading axis; the optional transverse marks are
+    single points at +- width/2 across the axis through the centre.
+
+    Args:
+        centre_px: specimen centre (x, y) in the reference image, px.
+        gauge_length_mm: L0, mm.
+        calibration: px -> mm.
+        axis_deg: loading axis direction, degrees from +x towards +y (90 = along the image
+            rows, specimen vertical).
+        mark_width_px: length of each mark's line of points across the axis, px.
+        points_per_mark: points per axial mark (>= 1).
+        transverse_width_mm: spacing of the transverse marks, mm; None = no transverse gauge.
+
+    Returns:
+        (points (n, 2) px, layout naming which points form which mark).
+    """
+    if not gauge_length_mm > 0:
+        raise ValueError(f"gauge_length_mm must be > 0, got {gauge_length_mm}")
+    if points_per_mark < 1:
+        raise ValueError(f"points_per_mark must be >= 1, got {points_per_mark}")
+    theta = math.radians(axis_deg)
+    along = np.array([math.cos(theta), math.sin(theta)])
+    across = np.array([-along[1], along[0]])
+    centre = np.asarray(centre_px, dtype=np.float64)
+    half = 0.5 * gauge_length_mm / calibration.scale_mm_per_px
+    offsets = (
+        np.linspace(-0.5, 0.5, points_per_mark) * mark_width_px if points_per_mark > 1 else [0]
+    )
+    points = [centre + sign * half * along + o * across for sign in (-1, 1) for o in offsets]
+    first = tuple(range(points_per_mark))
+    second = tuple(range(points_per_mark, 2 * points_per_mark))
+    transverse = None
+    if transverse_width_mm is not None:
+        if not transverse_width_mm > 0:
+            raise ValueError(f"transverse_width_mm must be > 0, got {transverse_width_mm}")
+        w = 0.5 * transverse_width_mm / calibration.scale_mm_per_px
+        start = len(points)
+        points += [centre - w * across, centre + w * across]
+        transverse = Gauge((start,), (start + 1,))
+    return np.array(points), StrainGaugesLayout(Gauge(first, second), transverse)
