@@ -1,0 +1,180 @@
+"""Appliance configuration: one TOML file, validated completely at load.
+
+Every key carries its unit in its name (`exposure_us`, `speed_mm_min`), unknown keys are
+rejected, and every error is one line naming the file, the table and the key:
+`run.toml: [camera] exposure_us: must be > 0, got -5`. Missing keys take the defaults below,
+so an empty file is a valid configuration of the simulated test.
+
+The schema is the dataclasses of this module: a table per section, a field per key; a field's
+`metadata` may give `minimum`, `maximum` (inclusive) and `choices`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from appliance.errors import InputError
+
+
+def _range(minimum: float | None = None, maximum: float | None = None, **extra: Any) -> dict:
+    return {"minimum": minimum, "maximum": maximum, **extra}
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """[camera]: which camera and how it acquires."""
+
+    url: str = "sim://camera"
+    exposure_us: float = field(default=1000.0, metadata=_range(1.0, 1e7))
+    gain_db: float = field(default=0.0, metadata=_range(0.0, 48.0))
+    pixel_format: str = field(default="Mono8", metadata={"choices": ("Mono8", "Mono12")})
+    frame_rate_hz: float = field(default=50.0, metadata=_range(0.1, 10000.0))
+
+
+@dataclass(frozen=True)
+class FrameConfig:
+    """[frame]: the tensile frame's controller."""
+
+    url: str = "sim://frame"
+    accepts_commands: bool = True
+
+
+@dataclass(frozen=True)
+class OpticsConfig:
+    """[optics]: lens and sensor, for calibration and exposure planning."""
+
+    focal_length_mm: float = field(default=25.0, metadata=_range(1.0, 1000.0))
+    object_distance_mm: float = field(default=400.0, metadata=_range(1.0, 1e5))
+    pixel_size_um: float = field(default=5.5, metadata=_range(0.5, 100.0))
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """[tracking]: the correlation pipeline."""
+
+    subset_px: int = field(default=41, metadata=_range(5, 301, odd=True))
+    search: str = field(default="zncc", metadata={"choices": ("zncc", "lpq", "none")})
+    search_radius_px: int = field(default=30, metadata=_range(0, 1000))
+    prefilter_sigma_px: float = field(default=0.8, metadata=_range(0.0, 5.0))
+    min_zncc: float = field(default=0.8, metadata=_range(-1.0, 1.0))
+
+
+@dataclass(frozen=True)
+class GaugeConfig:
+    """[gauge]: where the marks are and how long the gauge is."""
+
+    length_mm: float = field(default=20.0, metadata=_range(0.1, 10000.0))
+    points_per_mark: int = field(default=3, metadata=_range(1, 50))
+    mark_width_px: float = field(default=40.0, metadata=_range(0.0, 10000.0))
+    transverse_width_mm: float = field(default=0.0, metadata=_range(0.0, 1000.0))
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """[run]: test speed and when the test ends."""
+
+    speed_mm_min: float = field(default=500.0, metadata=_range(0.001, 10000.0))
+    until_strain: float = field(default=0.0, metadata=_range(0.0, 100.0))
+    until_break: bool = True
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """[sim]: the simulated world (used by sim:// devices only)."""
+
+    material: str = field(default="rubber", metadata={"choices": ("rubber", "metal")})
+    seed: int = field(default=1, metadata=_range(0, 2**31 - 1))
+    realtime: bool = False
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole configuration."""
+
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    frame: FrameConfig = field(default_factory=FrameConfig)
+    optics: OpticsConfig = field(default_factory=OpticsConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    gauge: GaugeConfig = field(default_factory=GaugeConfig)
+    run: RunConfig = field(default_factory=RunConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
+
+
+def _check_value(value: Any, kind: type, meta: dict, where: str) -> Any:
+    if kind is bool:
+        if not isinstance(value, bool):
+            raise InputError(f"{where}: must be true or false, got {value!r}")
+        return value
+    if kind is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise InputError(f"{where}: must be an integer, got {value!r}")
+    elif kind is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise InputError(f"{where}: must be a number, got {value!r}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise InputError(f"{where}: must be finite, got {value!r}")
+    elif kind is str:
+        if not isinstance(value, str):
+            raise InputError(f"{where}: must be a string, got {value!r}")
+    choices = meta.get("choices")
+    if choices is not None and value not in choices:
+        raise InputError(f"{where}: must be one of {', '.join(choices)}, got {value!r}")
+    minimum, maximum = meta.get("minimum"), meta.get("maximum")
+    if minimum is not None and value < minimum:
+        raise InputError(f"{where}: must be >= {minimum:g}, got {value!r}")
+    if maximum is not None and value > maximum:
+        raise InputError(f"{where}: must be <= {maximum:g}, got {value!r}")
+    if meta.get("odd") and value % 2 == 0:
+        raise InputError(f"{where}: must be odd, got {value!r}")
+    return value
+
+
+def _build(cls: type, table: dict, source: str, section: str | None) -> Any:
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    values = {}
+    for key, value in table.items():
+        where = f"{source}: [{section}] {key}" if section else f"{source}: [{key}]"
+        if key not in fields:
+            known = ", ".join(fields)
+            label = f"{source}: [{section}]" if section else source
+            raise InputError(f"{label}: unknown key {key!r} (known: {known})")
+        kind = hints[key]
+        if dataclasses.is_dataclass(kind):
+            if not isinstance(value, dict):
+                raise InputError(f"{where}: must be a table")
+            values[key] = _build(kind, value, source, key)
+        else:
+            if isinstance(kind, types.UnionType):
+                kind = next(k for k in typing.get_args(kind) if k is not type(None))
+            values[key] = _check_value(value, kind, dict(fields[key].metadata), where)
+    return cls(**values)
+
+
+def parse_config(text: str, source: str = "<config>") -> Config:
+    """Validate a configuration given as TOML text; `source` names it in errors."""
+    try:
+        table = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"{source}: invalid TOML: {exc}") from None
+    return _build(Config, table, source, None)
+
+
+def load_config(path: str | Path) -> Config:
+    """Read and validate a configuration file. Raises InputError naming file and key."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such configuration file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read configuration ({exc})") from None
+    return parse_config(text, str(path))
