@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from appliance.errors import InputError
+from appliance.errors import InputError, read_user_text
 
 
 def _range(minimum: float | None = None, maximum: float | None = None, **extra: Any) -> dict:
@@ -171,10 +171,4 @@ def parse_config(text: str, source: str = "<config>") -> Config:
 def load_config(path: str | Path) -> Config:
     """Read and validate a configuration file. Raises InputError naming file and key."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such configuration file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read configuration ({exc})") from None
-    return parse_config(text, str(path))
+    return parse_config(read_user_text(path, "configuration file"), str(path))

@@ -1,5 +1,7 @@
 """Errors the appliance reports to its user as one line, naming the culprit."""
 
+from pathlib import Path
+
 
 class InputError(Exception):
     """Bad input from the user: a file, a line of a file, a key or a value.
@@ -7,3 +9,17 @@ class InputError(Exception):
     The message is one line and names the culprit (path, line number, key or register);
     the command line prints it and exits with status 2.
     """
+
+
+def read_user_text(path: Path, what: str) -> str:
+    """Read a UTF-8 text file the user named; `what` names it in the one-line error.
+
+    Raises:
+        InputError: "<path>: no such <what>" or "<path>: cannot read <what> (<reason>)".
+    """
+    try:
+        return path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such {what}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read {what} ({exc})") from None

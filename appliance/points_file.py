@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from appliance.errors import InputError
+from appliance.errors import InputError, read_user_text
 
 
 @dataclass(frozen=True)
@@ -38,12 +38,7 @@ def read_points(path: str | Path) -> PointsOfInterest:
         InputError: naming the file and line of the first problem.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such points file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read points file ({exc})") from None
+    text = read_user_text(path, "points file")
     rows = [
         (number, row)
         for number, row in enumerate(csv.reader(text.splitlines()), start=1)
