@@ -146,12 +146,8 @@ class Correlator:
             return Measurement(self.icgn.compute(target, start), None)
         found = self._search(target, start[:, :2])
         use = found.valid
-        start[use, 0] = found.u[use]
-        start[use, 1] = found.v[use]
-        start[use, 2] = found.ux[use]
-        start[use, 3] = found.uy[use]
-        start[use, 4] = found.vx[use]
-        start[use, 5] = found.vy[use]
+        start[use, :2] = found.displacement[use]
+        start[use, 2:] = found.gradient[use]
         return Measurement(self.icgn.compute(target, start), found)
 
     def _search(self, target: np.ndarray, guess: np.ndarray) -> IntegerMatch:

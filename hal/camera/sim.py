@@ -18,6 +18,7 @@ jitter (edges are exact), or readout time limiting the frame rate.
 from __future__ import annotations
 
 import collections
+import dataclasses
 from typing import Any
 
 import numpy as np
@@ -95,12 +96,7 @@ class SimCamera:
             raise HardwareConfigError(
                 f"{self.url}: region {region} exceeds the {width}x{height} sensor"
             )
-        self._settings = CameraSettings(
-            exposure_us=settings.exposure_us,
-            gain_db=settings.gain_db,
-            region=region,
-            pixel_format=settings.pixel_format,
-        )
+        self._settings = dataclasses.replace(settings, region=region)
         return self._settings
 
     def prepare(self, trigger: TriggerInfo) -> None:
@@ -108,12 +104,7 @@ class SimCamera:
             raise HardwareConfigError(f"{self.url}: cannot prepare while armed")
         self._trigger = trigger
         if trigger.exposure_us is not None:
-            self._settings = CameraSettings(
-                exposure_us=trigger.exposure_us,
-                gain_db=self._settings.gain_db,
-                region=self._settings.region,
-                pixel_format=self._settings.pixel_format,
-            )
+            self._settings = dataclasses.replace(self._settings, exposure_us=trigger.exposure_us)
 
     def arm(self) -> None:
         if not self._open:
