@@ -1,0 +1,373 @@
+"""Tracking gauge marks through a whole test, to strains of several hundred percent.
+
+One image correlation against the first image cannot follow a rubber specimen to 600 %: the
+speckles stretch sevenfold along the axis and shrink across it, far beyond what a first-order
+subset shape function matches. `MarkTracker` therefore follows each mark (a small group of
+points) from frame to frame and *updates its reference* whenever the match degrades:
+
+* each mark has its own window: the reference crop around the mark and, in every frame, a
+  target crop of the same size placed where the mark is predicted to be (constant velocity
+  from the last two frames). Only these windows are filtered and interpolated, so the cost per
+  frame does not depend on the sensor size, and the windows follow the marks wherever they
+  travel;
+* in each window an integer ZNCC (or LPQ) search, pre-warped with the mark's current
+  deformation, seeds IC-GN; a point is *tracked* when IC-GN converges with ZNCC >= `min_zncc`;
+* the reference of a mark is replaced by the current frame when the ZNCC of any of its points
+  falls below `update_zncc`, a point had to be re-acquired, or the deformation since the
+  reference (largest displacement gradient) exceeds `update_deformation`; never from a frame
+  in which one of its points was lost (an occlusion must not become the reference). The new reference positions are the positions just
+  measured, so every later position is still an absolute position in image coordinates and
+  strain stays referred to the original gauge length; what a reference update adds is the
+  measurement error of that frame, carried forward (a random walk of one position error per
+  update, measured by the simulated-test benchmark);
+* after a reference update the subset shrinks with the lateral contraction measured since the
+  first image (down to `min_subset_px`), so subsets stay inside a specimen that narrows;
+* a point that fails is searched again at once with `reacquire_radius_px` on a wider window
+  (re-acquisition); if that fails too it is LOST for this frame and its position is estimated
+  from the mark's tracked points and their deformation gradient, so the mark's centroid does
+  not jump; a mark with no tracked point keeps its predicted position and is reported lost;
+* motion blur: the first reference is sharp, later frames may be blurred by the marks' motion
+  during the exposure. With the exposure known, each mark's blur is estimated from its
+  tracked velocity and the first reference is blurred to match (`appliance.dic.correlation`);
+  updated references come from frames exposed at the same speed and are used as they are.
+
+Directions: the loading axis is a unit vector in image coordinates (default: along the rows,
+the image y axis); "across" is perpendicular to it.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from appliance.dic.correlation import DEFAULT_PREFILTER_SIGMA, Correlator
+from appliance.dic.icgn import PointStatus
+
+
+class TrackStatus(enum.IntEnum):
+    """State of one point in one frame.
+
+    TRACKED: measured in this frame.
+    REACQUIRED: failed the normal search, measured by the wider re-acquisition search.
+    LOST: not measured; its position is estimated from the rest of its mark (or predicted).
+    """
+
+    TRACKED = 0
+    REACQUIRED = 1
+    LOST = 2
+
+
+@dataclass(frozen=True)
+class TrackerSettings:
+    """Tuning of `MarkTracker`; every length in px of the image.
+
+    Attributes:
+        subset_px: subset side at the first reference (odd).
+        min_subset_px: smallest subset after lateral contraction (odd).
+        search: integer search in every frame: "zncc" or "lpq".
+        search_radius_px: search half-width around the predicted position.
+        reacquire_search: search used to re-acquire a failed point: "zncc" or "lpq".
+        reacquire_radius_px: its half-width.
+        prefilter_sigma_px: Gaussian pre-filter of IC-GN.
+        min_zncc: a point whose refined ZNCC is below this is not tracked.
+        update_zncc: a mark whose worst point has a ZNCC below this updates its reference.
+        update_deformation: a mark whose largest displacement gradient (relative to its
+            reference) exceeds this updates its reference.
+        margin_px: extra border of every window beyond subset and search.
+        blur_tolerance_px: re-prepare the first reference when the estimated blur of a mark
+            differs by more than this from the blur applied to it.
+        axis: loading axis, unit vector (x, y) in image coordinates.
+    """
+
+    subset_px: int = 41
+    min_subset_px: int = 11
+    search: str = "zncc"
+    search_radius_px: int = 10
+    reacquire_search: str = "zncc"
+    reacquire_radius_px: int = 40
+    prefilter_sigma_px: float = DEFAULT_PREFILTER_SIGMA
+    min_zncc: float = 0.8
+    update_zncc: float = 0.95
+    update_deformation: float = 0.08
+    margin_px: int = 4
+    blur_tolerance_px: float = 0.5
+    axis: tuple[float, float] = (0.0, 1.0)
+
+    def __post_init__(self) -> None:
+        if self.subset_px < 5 or self.subset_px % 2 == 0:
+            raise ValueError(f"subset_px must be an odd size >= 5, got {self.subset_px}")
+        if not 5 <= self.min_subset_px <= self.subset_px or self.min_subset_px % 2 == 0:
+            raise ValueError(f"min_subset_px must be odd in 5..subset_px, got {self.min_subset_px}")
+        for name in ("search", "reacquire_search"):
+            if getattr(self, name) not in ("zncc", "lpq"):
+                raise ValueError(f"{name} must be zncc or lpq, got {getattr(self, name)!r}")
+        if not 0 <= self.search_radius_px <= self.reacquire_radius_px:
+            raise ValueError("need 0 <= search_radius_px <= reacquire_radius_px")
+        if not -1 <= self.min_zncc <= self.update_zncc <= 1:
+            raise ValueError("need -1 <= min_zncc <= update_zncc <= 1")
+        if not self.update_deformation > 0:
+            raise ValueError("update_deformation must be > 0")
+        norm = math.hypot(*self.axis)
+        if not norm > 0:
+            raise ValueError("axis must be a non-zero vector")
+        object.__setattr__(self, "axis", (self.axis[0] / norm, self.axis[1] / norm))
+
+
+@dataclass(frozen=True)
+class TrackedFrame:
+    """Result of one frame for all points (n of them).
+
+    Attributes:
+        positions: (n, 2) positions (x, y) in this image, px; LOST points estimated.
+        status: (n,) `TrackStatus`.
+        zncc: (n,) ZNCC of the match against the mark's current reference (NaN if lost).
+        gradients: (n, 4) (ux, uy, vx, vy) relative to the mark's current reference.
+        reference_updates: marks whose reference was replaced after this frame.
+        marks_lost: marks with no measured point in this frame.
+    """
+
+    positions: np.ndarray
+    status: np.ndarray
+    zncc: np.ndarray
+    gradients: np.ndarray
+    reference_updates: int
+    marks_lost: int
+
+    @property
+    def measured(self) -> np.ndarray:
+        """(n,) mask of points measured in this frame (tracked or re-acquired)."""
+        return self.status != TrackStatus.LOST
+
+
+def _odd_at_most(value: float, lowest: int, highest: int) -> int:
+    size = int(math.floor(value))
+    size -= 1 - size % 2
+    return max(lowest, min(highest, size))
+
+
+class _Mark:
+    """One group of points followed with its own reference window."""
+
+    def __init__(self, indices: np.ndarray, settings: TrackerSettings) -> None:
+        self.indices = indices
+        self.settings = settings
+        self.subset = settings.subset_px
+        self.deformation_total = np.eye(2)
+        self.blur_applied = 0.0
+        self.first_reference = True
+        self.velocity = np.zeros(2)
+        self.gradient = np.zeros(4)
+        self.last_time: float | None = None
+
+    def set_reference(self, image: np.ndarray, positions: np.ndarray) -> None:
+        """Make `image` the (sharp) reference with the mark's points at `positions` (m, 2)."""
+        s = self.settings
+        self.reference_positions = positions.copy()
+        lo, hi = positions.min(axis=0), positions.max(axis=0)
+        border = self.subset // 2 + s.reacquire_radius_px + s.margin_px
+        self.origin = np.floor(lo).astype(np.int64) - border
+        width, height = (np.ceil(hi).astype(np.int64) + border + 1 - self.origin).tolist()
+        self.reference_crop = _crop(image, self.origin, width, height)
+        self.prepare(0.0)
+
+    def prepare(self, blur_px: float) -> None:
+        """(Re)build the correlators on the reference crop, blurred by `blur_px` along the axis."""
+        s = self.settings
+        self.blur_applied = blur_px
+        self.correlators = {}
+        for name, search, radius in (
+            ("track", s.search, s.search_radius_px),
+            ("reacquire", s.reacquire_search, s.reacquire_radius_px),
+        ):
+            correlator = Correlator(
+                subset=self.subset,
+                search=search,
+                search_radius=radius,
+                reference_blur=(blur_px, _axis_angle(s.axis)) if blur_px > 0 else None,
+                prefilter_sigma=s.prefilter_sigma_px,
+                threads=1,
+            )
+            correlator.prepare(self.reference_crop, self.reference_positions - self.origin)
+            self.correlators[name] = correlator
+
+
+def _axis_angle(axis: tuple[float, float]) -> float:
+    return math.degrees(math.atan2(axis[1], axis[0]))
+
+
+def _crop(image: np.ndarray, origin: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Window of `image` at `origin` (x0, y0); parts outside the image repeat the edge."""
+    x0, y0 = int(origin[0]), int(origin[1])
+    h, w = image.shape
+    rows = np.clip(np.arange(y0, y0 + height), 0, h - 1)
+    cols = np.clip(np.arange(x0, x0 + width), 0, w - 1)
+    if 0 <= x0 and x0 + width <= w and 0 <= y0 and y0 + height <= h:
+        return np.asarray(image[y0 : y0 + height, x0 : x0 + width], dtype=np.float64)
+    return np.asarray(image[np.ix_(rows, cols)], dtype=np.float64)
+
+
+class MarkTracker:
+    """Follows groups of points (marks) from frame to frame with reference updating.
+
+    Args:
+        reference: the first image (2-D grey array).
+        points: (n, 2) positions (x, y) of all points in it, px.
+        marks: groups of point indices tracked together (each point in exactly one group);
+            a gauge mark is a natural group.
+        settings: tuning.
+
+    Use: `track(image, time_s, exposure_s)` for every frame in order.
+    """
+
+    def __init__(
+        self,
+        reference: np.ndarray,
+        points: np.ndarray,
+        marks: Sequence[Sequence[int]],
+        settings: TrackerSettings | None = None,
+    ) -> None:
+        self.settings = settings or TrackerSettings()
+        points = np.asarray(points, dtype=np.float64)
+        if points.ndim != 2 or points.shape[1] != 2 or not np.all(np.isfinite(points)):
+            raise ValueError("points must be a finite (n, 2) array")
+        flat = sorted(i for mark in marks for i in mark)
+        if flat != list(range(points.shape[0])):
+            raise ValueError("every point must belong to exactly one mark")
+        self.n = points.shape[0]
+        self.positions = points.copy()
+        self.previous_positions = points.copy()
+        self.reference_updates = 0
+        self._marks = [_Mark(np.asarray(mark, dtype=np.int64), self.settings) for mark in marks]
+        image = np.asarray(reference, dtype=np.float64)
+        for mark in self._marks:
+            mark.set_reference(image, points[mark.indices])
+
+    @property
+    def subsets(self) -> list[int]:
+        """Current subset size of every mark, px."""
+        return [mark.subset for mark in self._marks]
+
+    def track(self, image: np.ndarray, time_s: float, exposure_s: float = 0.0) -> TrackedFrame:
+        """Measure all points in the next frame.
+
+        Args:
+            image: 2-D grey image (the whole frame; only the marks' windows are read).
+            time_s: time of the frame (any clock, seconds), for the velocity prediction.
+            exposure_s: its exposure, s, for the blur estimate (0 = assume no blur).
+        """
+        image = np.asarray(image)
+        positions = np.empty((self.n, 2))
+        status = np.full(self.n, TrackStatus.LOST, dtype=np.int8)
+        zncc = np.full(self.n, np.nan)
+        gradients = np.zeros((self.n, 4))
+        updates = 0
+        lost_marks = 0
+        for mark in self._marks:
+            result = self._track_mark(mark, image, time_s, exposure_s)
+            idx = mark.indices
+            positions[idx], status[idx], zncc[idx], gradients[idx] = result[:4]
+            if result[4]:
+                lost_marks += 1
+            elif self._needs_update(mark, status[idx], zncc[idx], gradients[idx]):
+                self._update_reference(mark, image, positions[idx], gradients[idx], status[idx])
+                updates += 1
+        self.reference_updates += updates
+        self.previous_positions = self.positions
+        self.positions = positions
+        return TrackedFrame(positions, status, zncc, gradients, updates, lost_marks)
+
+    def _track_mark(self, mark: _Mark, image: np.ndarray, time_s: float, exposure_s: float):
+        s = self.settings
+        last = self.positions[mark.indices]
+        dt = None if mark.last_time is None else time_s - mark.last_time
+        predicted = last + (mark.velocity * dt if dt else 0.0)
+        blur = float(np.hypot(*mark.velocity)) * exposure_s
+        if mark.first_reference and abs(blur - mark.blur_applied) > s.blur_tolerance_px:
+            mark.prepare(blur)
+        gradient_guess = mark.gradient
+        m = mark.indices.size
+        out_pos = predicted.copy()
+        out_status = np.full(m, TrackStatus.LOST, dtype=np.int8)
+        out_zncc = np.full(m, np.nan)
+        out_grad = np.tile(gradient_guess, (m, 1))
+        pending = np.ones(m, dtype=bool)
+        for name, flag in (("track", TrackStatus.TRACKED), ("reacquire", TrackStatus.REACQUIRED)):
+            correlator = mark.correlators[name]
+            shift = np.round((predicted - mark.reference_positions).mean(axis=0)).astype(int)
+            origin = mark.origin + shift
+            h, w = mark.reference_crop.shape
+            crop = _crop(image, origin, w, h)
+            guess = np.empty((m, 6))
+            guess[:, :2] = predicted - mark.reference_positions - shift
+            guess[:, 2:] = gradient_guess
+            correlator.prewarps = [tuple(gradient_guess)]
+            result = correlator.measure(crop, guess).refinement
+            good = (result.status == PointStatus.CONVERGED) & (result.zncc >= s.min_zncc)
+            take = pending & good
+            out_pos[take, 0] = mark.reference_positions[take, 0] + result.u[take] + shift[0]
+            out_pos[take, 1] = mark.reference_positions[take, 1] + result.v[take] + shift[1]
+            out_status[take] = flag
+            out_zncc[take] = result.zncc[take]
+            grads = np.stack([result.ux, result.uy, result.vx, result.vy], axis=1)
+            out_grad[take] = grads[take]
+            pending &= ~good
+            if not pending.any():
+                break
+        measured = ~pending
+        mark_lost = not measured.any()
+        if mark_lost:
+            out_pos = predicted
+        elif pending.any():
+            out_pos[pending] = self._estimate(mark, out_pos, measured, out_grad)
+        if dt and not mark_lost:
+            mark.velocity = (out_pos.mean(axis=0) - last.mean(axis=0)) / dt
+        mark.last_time = time_s
+        return out_pos, out_status, out_zncc, out_grad, mark_lost
+
+    def _estimate(
+        self, mark: _Mark, positions: np.ndarray, measured: np.ndarray, gradients: np.ndarray
+    ) -> np.ndarray:
+        """Positions of a mark's unmeasured points from the measured ones and their gradient."""
+        g = gradients[measured].mean(axis=0)
+        f = np.array([[1 + g[0], g[1]], [g[2], 1 + g[3]]])
+        ref = mark.reference_positions
+        anchor_ref = ref[measured].mean(axis=0)
+        anchor_now = positions[measured].mean(axis=0)
+        return anchor_now + (ref[~measured] - anchor_ref) @ f.T
+
+    def _needs_update(
+        self, mark: _Mark, status: np.ndarray, zncc: np.ndarray, gradients: np.ndarray
+    ) -> bool:
+        s = self.settings
+        measured = status != TrackStatus.LOST
+        mark.gradient = gradients[measured].mean(axis=0)
+        if not measured.all():
+            return False
+        if (status == TrackStatus.REACQUIRED).any():
+            return True
+        if np.nanmin(zncc) < s.update_zncc:
+            return True
+        return float(np.abs(gradients).max()) > s.update_deformation
+
+    def _update_reference(
+        self,
+        mark: _Mark,
+        image: np.ndarray,
+        positions: np.ndarray,
+        gradients: np.ndarray,
+        status: np.ndarray,
+    ) -> None:
+        s = self.settings
+        g = gradients[status != TrackStatus.LOST].mean(axis=0)
+        step = np.array([[1 + g[0], g[1]], [g[2], 1 + g[3]]])
+        mark.deformation_total = step @ mark.deformation_total
+        across = np.array([-s.axis[1], s.axis[0]])
+        lateral = float(np.linalg.norm(mark.deformation_total @ across))
+        mark.subset = _odd_at_most(s.subset_px * min(1.0, lateral), s.min_subset_px, s.subset_px)
+        mark.first_reference = False
+        mark.gradient = np.zeros(4)
+        mark.set_reference(np.asarray(image, dtype=np.float64), positions)
