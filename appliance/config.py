@@ -29,13 +29,22 @@ def _range(minimum: float | None = None, maximum: float | None = None, **extra: 
 
 @dataclass(frozen=True)
 class CameraConfig:
-    """[camera]: which camera and how it acquires."""
+    """[camera]: which camera and how it acquires.
+
+    `exposure_us` and `frame_rate_hz` left out are chosen by the exposure planner
+    (`appliance.planner`) from the test speed and the optics: the longest exposure within
+    `blur_budget_px` of motion blur (between `min_exposure_us` and `max_exposure_us`) and a
+    frame rate that keeps the frame-to-frame motion of the marks inside the tracker's search.
+    """
 
     url: str = "sim://camera"
-    exposure_us: float = field(default=1000.0, metadata=_range(1.0, 1e7))
+    exposure_us: float | None = field(default=None, metadata=_range(1.0, 1e7))
     gain_db: float = field(default=0.0, metadata=_range(0.0, 48.0))
     pixel_format: str = field(default="Mono8", metadata={"choices": ("Mono8", "Mono12")})
-    frame_rate_hz: float = field(default=50.0, metadata=_range(0.1, 10000.0))
+    frame_rate_hz: float | None = field(default=None, metadata=_range(0.1, 10000.0))
+    blur_budget_px: float = field(default=1.0, metadata=_range(0.0, 100.0))
+    min_exposure_us: float = field(default=100.0, metadata=_range(1.0, 1e7))
+    max_exposure_us: float = field(default=20000.0, metadata=_range(1.0, 1e7))
 
 
 @dataclass(frozen=True)
@@ -48,11 +57,15 @@ class FrameConfig:
 
 @dataclass(frozen=True)
 class OpticsConfig:
-    """[optics]: lens and sensor, for calibration and exposure planning."""
+    """[optics]: lens and sensor, for calibration and exposure planning.
 
-    focal_length_mm: float = field(default=25.0, metadata=_range(1.0, 1000.0))
-    object_distance_mm: float = field(default=400.0, metadata=_range(1.0, 1e5))
-    pixel_size_um: float = field(default=5.5, metadata=_range(0.5, 100.0))
+    Left out, the simulated test takes its material preset's camera; a real camera needs all
+    three.
+    """
+
+    focal_length_mm: float | None = field(default=None, metadata=_range(1.0, 1000.0))
+    object_distance_mm: float | None = field(default=None, metadata=_range(1.0, 1e5))
+    pixel_size_um: float | None = field(default=None, metadata=_range(0.5, 100.0))
 
 
 @dataclass(frozen=True)
@@ -60,27 +73,41 @@ class TrackingConfig:
     """[tracking]: the correlation pipeline."""
 
     subset_px: int = field(default=41, metadata=_range(5, 301, odd=True))
-    search: str = field(default="zncc", metadata={"choices": ("zncc", "lpq", "none")})
-    search_radius_px: int = field(default=30, metadata=_range(0, 1000))
+    min_subset_px: int = field(default=11, metadata=_range(5, 301, odd=True))
+    search: str = field(default="zncc", metadata={"choices": ("zncc", "lpq")})
+    search_radius_px: int = field(default=10, metadata=_range(0, 1000))
+    reacquire_search: str = field(default="zncc", metadata={"choices": ("zncc", "lpq")})
+    reacquire_radius_px: int = field(default=40, metadata=_range(0, 1000))
     prefilter_sigma_px: float = field(default=0.8, metadata=_range(0.0, 5.0))
     min_zncc: float = field(default=0.8, metadata=_range(-1.0, 1.0))
+    update_zncc: float = field(default=0.95, metadata=_range(-1.0, 1.0))
+    update_deformation: float = field(default=0.08, metadata=_range(0.001, 1.0))
 
 
 @dataclass(frozen=True)
 class GaugeConfig:
-    """[gauge]: where the marks are and how long the gauge is."""
+    """[gauge]: where the marks are and how long the gauge is.
 
-    length_mm: float = field(default=20.0, metadata=_range(0.1, 10000.0))
+    Marks are placed centred on the specimen: each axial mark is a line of `points_per_mark`
+    points `mark_spacing_px` apart along the axis. `length_mm` left out takes the simulated
+    specimen's gauge length; `transverse_width_mm` = 0 means no transverse gauge.
+    """
+
+    length_mm: float | None = field(default=None, metadata=_range(0.1, 10000.0))
     points_per_mark: int = field(default=3, metadata=_range(1, 50))
-    mark_width_px: float = field(default=40.0, metadata=_range(0.0, 10000.0))
+    mark_spacing_px: float = field(default=8.0, metadata=_range(0.0, 1000.0))
     transverse_width_mm: float = field(default=0.0, metadata=_range(0.0, 1000.0))
 
 
 @dataclass(frozen=True)
 class RunConfig:
-    """[run]: test speed and when the test ends."""
+    """[run]: test speed and when the test ends.
 
-    speed_mm_min: float = field(default=500.0, metadata=_range(0.001, 10000.0))
+    `speed_mm_min` left out takes the simulated material's standard speed; `until_strain` = 0
+    means no strain limit.
+    """
+
+    speed_mm_min: float | None = field(default=None, metadata=_range(0.001, 10000.0))
     until_strain: float = field(default=0.0, metadata=_range(0.0, 100.0))
     until_break: bool = True
 
@@ -92,6 +119,10 @@ class SimConfig:
     material: str = field(default="rubber", metadata={"choices": ("rubber", "metal")})
     seed: int = field(default=1, metadata=_range(0, 2**31 - 1))
     realtime: bool = False
+    sensor_width_px: int | None = field(default=None, metadata=_range(64, 16384))
+    sensor_height_px: int | None = field(default=None, metadata=_range(64, 16384))
+    read_noise_grey: float = field(default=0.5, metadata=_range(0.0, 50.0))
+    electrons_per_grey: float = field(default=40.0, metadata=_range(0.0, 1e6))
 
 
 @dataclass(frozen=True)
@@ -165,7 +196,28 @@ def parse_config(text: str, source: str = "<config>") -> Config:
         table = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"{source}: invalid TOML: {exc}") from None
-    return _build(Config, table, source, None)
+    config = _build(Config, table, source, None)
+    _check_relations(config, source)
+    return config
+
+
+_RELATIONS = (
+    ("tracking", "min_subset_px", "subset_px"),
+    ("tracking", "search_radius_px", "reacquire_radius_px"),
+    ("tracking", "min_zncc", "update_zncc"),
+    ("camera", "min_exposure_us", "max_exposure_us"),
+)
+"""(table, key, other key): the value of key may not exceed that of the other key."""
+
+
+def _check_relations(config: Config, source: str) -> None:
+    for section, key, upper in _RELATIONS:
+        table = getattr(config, section)
+        value, limit = getattr(table, key), getattr(table, upper)
+        if value > limit:
+            raise InputError(
+                f"{source}: [{section}] {key}: must be <= {upper} ({limit:g}), got {value:g}"
+            )
 
 
 def load_config(path: str | Path) -> Config:

@@ -15,11 +15,12 @@ points) from frame to frame and *updates its reference* whenever the match degra
 * the reference of a mark is replaced by the current frame when the ZNCC of any of its points
   falls below `update_zncc`, a point had to be re-acquired, or the deformation since the
   reference (largest displacement gradient) exceeds `update_deformation`; never from a frame
-  in which one of its points was lost (an occlusion must not become the reference). The new reference positions are the positions just
-  measured, so every later position is still an absolute position in image coordinates and
-  strain stays referred to the original gauge length; what a reference update adds is the
-  measurement error of that frame, carried forward (a random walk of one position error per
-  update, measured by the simulated-test benchmark);
+  in which one of its points was lost (an occlusion must not become the reference). The new
+  reference positions are the positions just measured, so every later position is still an
+  absolute position in image coordinates and strain stays referred to the original gauge
+  length; what a reference update adds is the measurement error of that frame, carried
+  forward (a random walk of one position error per update, measured by the simulated-test
+  benchmark);
 * after a reference update the subset shrinks with the lateral contraction measured since the
   first image (down to `min_subset_px`), so subsets stay inside a specimen that narrows;
 * a point that fails is searched again at once with `reacquire_radius_px` on a wider window

@@ -24,10 +24,12 @@ def test_empty_file_gives_the_defaults_and_values_are_typed():
         ("[camera]\nexposure_us = 'fast'\n", "[camera] exposure_us: must be a number"),
         ("[tracking]\nsubset_px = 40\n", "[tracking] subset_px: must be odd, got 40"),
         ("[tracking]\nsubset_px = 41.0\n", "[tracking] subset_px: must be an integer"),
-        ("[tracking]\nsearch = 'sift'\n", "[tracking] search: must be one of zncc, lpq, none"),
+        ("[tracking]\nsearch = 'sift'\n", "[tracking] search: must be one of zncc, lpq"),
         ("[run]\nuntil_break = 1\n", "[run] until_break: must be true or false"),
         ("[run]\nspeed_mm_min = nan\n", "[run] speed_mm_min: must be finite"),
         ("camera = 3\n", "run.toml: [camera]: must be a table"),
+        ("[tracking]\nmin_subset_px = 51\n", "[tracking] min_subset_px: must be <= subset_px"),
+        ("[camera]\nmin_exposure_us = 3e4\n", "[camera] min_exposure_us: must be <= max_exp"),
         ("[camera\n", "run.toml: invalid TOML"),
     ],
 )

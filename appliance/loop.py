@@ -1,0 +1,410 @@
+"""The measurement loop: acquisition, tracking and publishing on their own threads.
+
+    camera.fetch --(frames queue)--> track + strain --(samples queue)--> sinks
+
+* The acquisition thread fetches frames and reads the frame controller right after each one.
+  When the frames queue is full it drops the frame and counts it (a real camera cannot wait),
+  unless the loop is told to block (a simulation running as fast as possible, whose clock
+  only moves when a frame is fetched).
+* The tracking thread measures the marks (`appliance.tracking.MarkTracker`), turns positions
+  into strain (`appliance.gauges.StrainGauges`), checks the stop criteria and break
+  detection, and hands a `StrainSample` on. Nothing else runs between a frame and its strain.
+* The publishing thread calls the sinks (strain file, progress display, and later recording,
+  viewer and Modbus). Its queue never drops: a sample is published or the loop fails.
+
+Timestamps come from the device (`Frame.timestamp_ns`). Latency is wall time from the moment
+the camera delivers a frame to the moment its strain sample is complete, so it measures this
+program and nothing of the camera's transport.
+
+The run follows `appliance.run_state`: ARMED while the reference is taken, RUNNING while
+measuring, STOPPING while the queues drain, then IDLE; ABORTED on an operator interrupt and
+FAULT on an error of a device or of the measurement, each with its reason. Samples measured
+before an abort or a fault are kept and published.
+"""
+
+from __future__ import annotations
+
+import math
+import queue
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from appliance.gauges import StrainGauges, StrainReading
+from appliance.run_state import RunEvent, RunState, RunStateMachine
+from appliance.tracking import MarkTracker
+from hal.camera.base import Camera, Frame
+from hal.errors import HardwareError
+from hal.frame.base import FrameState, TensileFrame
+
+
+@dataclass(frozen=True)
+class StrainSample:
+    """Everything measured on one frame.
+
+    Attributes:
+        index: sample number in this run (0 = first frame after the reference).
+        frame_id: the camera's frame counter.
+        timestamp_ns: device time of the start of exposure, ns.
+        time_s: seconds since the reference frame (device clock).
+        exposure_us: exposure of the frame, us.
+        reading: strains and elongation.
+        positions: (n, 2) tracked positions, px.
+        status: (n,) `appliance.tracking.TrackStatus`.
+        zncc: (n,) ZNCC of each point.
+        data_valid: every gauge mark had at least one measured point.
+        reference_updates: references replaced after this frame.
+        machine: the controller's state read with the frame (None if unavailable).
+        latency_s: wall time from frame delivery to this sample.
+        metadata: the frame's metadata (a simulator's ground truth, for instance).
+    """
+
+    index: int
+    frame_id: int
+    timestamp_ns: int
+    time_s: float
+    exposure_us: float
+    reading: StrainReading
+    positions: np.ndarray
+    status: np.ndarray
+    zncc: np.ndarray
+    data_valid: bool
+    reference_updates: int
+    machine: FrameState | None
+    latency_s: float
+    metadata: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class StopCriteria:
+    """When a run ends by itself.
+
+    Attributes:
+        until_strain: stop when the engineering strain reaches this; None = no limit.
+        until_break: stop when a break is detected.
+        max_time_s: stop after this much device time; None = no limit.
+        max_frames: stop after this many samples; None = no limit.
+    """
+
+    until_strain: float | None = None
+    until_break: bool = True
+    max_time_s: float | None = None
+    max_frames: int | None = None
+
+
+@dataclass(frozen=True)
+class BreakDetection:
+    """How a break is recognised.
+
+    A break is declared when the force has fallen below `force_drop_fraction` of its maximum
+    (once the maximum exceeded `min_peak_force_n`), or when a gauge mark has had no measured
+    point for `lost_mark_frames` consecutive frames after the strain passed `min_strain`
+    (the marks separating as the specimen snaps).
+    """
+
+    force_drop_fraction: float = 0.2
+    min_peak_force_n: float = 1.0
+    lost_mark_frames: int = 3
+    min_strain: float = 0.001
+
+
+@dataclass
+class LoopResult:
+    """How a run went.
+
+    Attributes:
+        exit_status: "completed", "break", "aborted" or "fault".
+        reason: why the run ended, one line.
+        frames_processed: samples measured.
+        frames_dropped: frames lost: dropped on a full queue or missing from the camera's
+            frame counter.
+        latencies_s: per-sample latency, s.
+        tracking_time_s: wall time spent tracking (the measurement's own cost).
+        final_state: the run state at the end.
+    """
+
+    exit_status: str = "completed"
+    reason: str = ""
+    frames_processed: int = 0
+    frames_dropped: int = 0
+    latencies_s: list[float] = field(default_factory=list)
+    tracking_time_s: float = 0.0
+    final_state: RunState = RunState.IDLE
+
+
+Sink = Callable[[StrainSample], None]
+_END = object()
+
+
+class MeasurementLoop:
+    """Runs one test on a camera and a frame controller.
+
+    Args:
+        camera: an opened, configured and prepared camera (not armed).
+        frame: an opened frame controller, or None.
+        setup: called with the reference frame; returns the tracker and the strain gauges
+            (this is where the marks are placed).
+        sinks: called in order with every sample, on the publishing thread.
+        state: the run state machine (IDLE at the start).
+        block_when_full: wait for room in the frames queue instead of dropping frames.
+        queue_size: capacity of each queue.
+        start_speed_mm_min: if set and the controller accepts commands, start the crosshead
+            at this speed when the run starts and stop it at the end.
+        fetch_timeout_s: timeout of every frame fetch.
+        wall: wall clock, s (injected for tests).
+    """
+
+    def __init__(
+        self,
+        camera: Camera,
+        frame: TensileFrame | None,
+        setup: Callable[[Frame], tuple[MarkTracker, StrainGauges]],
+        *,
+        sinks: Sequence[Sink] = (),
+        state: RunStateMachine | None = None,
+        block_when_full: bool = False,
+        queue_size: int = 8,
+        start_speed_mm_min: float | None = None,
+        fetch_timeout_s: float = 2.0,
+        break_detection: BreakDetection | None = None,
+        wall: Callable[[], float] = time.perf_counter,
+    ) -> None:
+        self.camera = camera
+        self.frame = frame
+        self.setup = setup
+        self.sinks = list(sinks)
+        self.state = state or RunStateMachine()
+        self.block_when_full = block_when_full
+        self.start_speed_mm_min = start_speed_mm_min
+        self.fetch_timeout_s = fetch_timeout_s
+        self.break_detection = break_detection or BreakDetection()
+        self._wall = wall
+        self._frames: queue.Queue = queue.Queue(maxsize=queue_size)
+        self._samples: queue.Queue = queue.Queue(maxsize=queue_size)
+        self._stop = threading.Event()
+        self._finished = threading.Event()
+        self._result = LoopResult()
+        self._errors: list[tuple[str, BaseException]] = []
+        self._lock = threading.Lock()
+
+    def request_stop(self, reason: str = "operator stop") -> None:
+        """Ask the run to end normally (thread-safe)."""
+        self._finish("completed", reason)
+
+    def run(self, criteria: StopCriteria) -> LoopResult:
+        """Take the reference, measure until a stop criterion, a break, an abort or a fault."""
+        self.state.handle(RunEvent.ARM, "reference")
+        self.camera.arm()
+        try:
+            reference = self.camera.fetch(self.fetch_timeout_s)
+            self._reference_time_ns = reference.timestamp_ns
+            self._last_frame_id = reference.frame_id
+            tracker, gauges = self.setup(reference)
+        except HardwareError as exc:
+            return self._fail_before_start(exc)
+        self.state.handle(RunEvent.START, "measuring")
+        if self.start_speed_mm_min is not None and self.frame is not None:
+            self.frame.start(self.start_speed_mm_min)
+        threads = [
+            threading.Thread(target=self._guard, args=("acquisition", self._acquire), daemon=True),
+            threading.Thread(
+                target=self._guard,
+                args=("tracking", self._track, tracker, gauges, criteria),
+                daemon=True,
+            ),
+            threading.Thread(target=self._guard, args=("publishing", self._publish), daemon=True),
+        ]
+        for thread in threads:
+            thread.start()
+        try:
+            while any(t.is_alive() for t in threads):
+                for thread in threads:
+                    thread.join(timeout=0.1)
+        except KeyboardInterrupt:
+            self._finish("aborted", "interrupted by the operator")
+            for thread in threads:
+                thread.join()
+        self._shut_down()
+        return self._result
+
+    def _fail_before_start(self, exc: BaseException) -> LoopResult:
+        self._result.exit_status = "fault"
+        self._result.reason = f"reference frame: {exc}"
+        self.state.handle(RunEvent.FAULT, self._result.reason)
+        self.camera.disarm()
+        self._result.final_state = self.state.state
+        return self._result
+
+    def _shut_down(self) -> None:
+        self.camera.disarm()
+        if self.start_speed_mm_min is not None and self.frame is not None:
+            try:
+                self.frame.stop()
+            except HardwareError as exc:
+                if not self._errors:
+                    self._errors.append(("frame", exc))
+        result = self._result
+        if self._errors:
+            where, exc = self._errors[0]
+            result.exit_status = "fault"
+            result.reason = f"{where}: {type(exc).__name__}: {exc}"
+        current = self.state.state
+        if result.exit_status == "fault":
+            self.state.handle(RunEvent.FAULT, result.reason)
+        elif result.exit_status == "aborted":
+            self.state.handle(RunEvent.ABORT, result.reason)
+        else:
+            if current is RunState.RUNNING:
+                self.state.handle(RunEvent.STOP, result.reason)
+            self.state.handle(RunEvent.FINISH, result.reason)
+        result.final_state = self.state.state
+
+    def _finish(self, status: str, reason: str) -> None:
+        with self._lock:
+            if self._stop.is_set():
+                return
+            self._result.exit_status = status
+            self._result.reason = reason
+            self._finished.set()
+            self._stop.set()
+        if status in ("completed", "break") and self.state.state is RunState.RUNNING:
+            self.state.handle(RunEvent.STOP, reason)
+
+    def _guard(self, name: str, body: Callable[..., None], *args: Any) -> None:
+        try:
+            body(*args)
+        except BaseException as exc:  # noqa: BLE001 - every thread failure becomes a FAULT
+            self._errors.append((name, exc))
+            self._stop.set()
+            self._put(self._frames, _END, force=True)
+
+    def _put(self, q: queue.Queue, item: object, *, force: bool = False) -> bool:
+        while True:
+            try:
+                q.put(item, timeout=0.05)
+                return True
+            except queue.Full:
+                if force:
+                    try:
+                        q.get_nowait()
+                    except queue.Empty:
+                        pass
+                elif self._stop.is_set():
+                    return False
+
+    def _acquire(self) -> None:
+        try:
+            while not self._stop.is_set():
+                frame = self.camera.fetch(self.fetch_timeout_s)
+                delivered = self._wall()
+                machine = self.frame.read_state() if self.frame is not None else None
+                gap = frame.frame_id - self._last_frame_id - 1
+                self._last_frame_id = frame.frame_id
+                if gap > 0:
+                    self._result.frames_dropped += gap
+                item = (frame, machine, delivered)
+                if self.block_when_full:
+                    self._put(self._frames, item)
+                else:
+                    try:
+                        self._frames.put_nowait(item)
+                    except queue.Full:
+                        self._result.frames_dropped += 1
+        finally:
+            self._put(self._frames, _END, force=True)
+
+    def _track(self, tracker: MarkTracker, gauges: StrainGauges, criteria: StopCriteria) -> None:
+        detection = self.break_detection
+        axial_marks = (gauges.axial.first, gauges.axial.second)
+        peak_force = 0.0
+        lost_run = 0
+        index = 0
+        try:
+            while True:
+                item = self._frames.get()
+                if item is _END:
+                    break
+                if self._finished.is_set():
+                    continue
+                frame, machine, delivered = item
+                started = self._wall()
+                time_s = (frame.timestamp_ns - self._reference_time_ns) * 1e-9
+                tracked = tracker.track(frame.image, time_s, frame.exposure_us * 1e-6)
+                reading = gauges.read(tracked.positions)
+                measured = tracked.measured
+                valid = all(measured[list(mark)].any() for mark in axial_marks)
+                now = self._wall()
+                self._result.tracking_time_s += now - started
+                sample = StrainSample(
+                    index=index,
+                    frame_id=frame.frame_id,
+                    timestamp_ns=frame.timestamp_ns,
+                    time_s=time_s,
+                    exposure_us=frame.exposure_us,
+                    reading=reading,
+                    positions=tracked.positions,
+                    status=tracked.status,
+                    zncc=tracked.zncc,
+                    data_valid=valid,
+                    reference_updates=tracked.reference_updates,
+                    machine=machine,
+                    latency_s=now - delivered,
+                    metadata=frame.metadata,
+                )
+                index += 1
+                self._result.frames_processed = index
+                self._result.latencies_s.append(sample.latency_s)
+                self._publish_sample(sample)
+                strain = reading.engineering_strain
+                lost_run = 0 if valid else lost_run + 1
+                if machine is not None:
+                    peak_force = max(peak_force, machine.force_n)
+                if criteria.until_break and (
+                    machine is not None
+                    and peak_force >= detection.min_peak_force_n
+                    and machine.force_n < detection.force_drop_fraction * peak_force
+                ):
+                    self._finish(
+                        "break",
+                        f"break: force fell to {machine.force_n:.1f} N "
+                        f"from a peak of {peak_force:.1f} N",
+                    )
+                elif (
+                    criteria.until_break
+                    and lost_run >= detection.lost_mark_frames
+                    and (math.isnan(strain) or strain >= detection.min_strain)
+                ):
+                    self._finish("break", f"break: a gauge mark lost for {lost_run} frames")
+                elif criteria.until_strain is not None and strain >= criteria.until_strain:
+                    self._finish(
+                        "completed", f"strain {strain:.6g} reached {criteria.until_strain:g}"
+                    )
+                elif criteria.max_time_s is not None and time_s >= criteria.max_time_s:
+                    self._finish("completed", f"time limit {criteria.max_time_s:g} s reached")
+                elif criteria.max_frames is not None and index >= criteria.max_frames:
+                    self._finish("completed", f"frame limit {criteria.max_frames} reached")
+        finally:
+            self._stop.set()
+            self._publish_sample(_END)
+
+    def _publish_sample(self, sample: object) -> None:
+        """Queue a sample for the sinks; waits for room (samples are never dropped)."""
+        while True:
+            try:
+                self._samples.put(sample, timeout=0.05)
+                return
+            except queue.Full:
+                if any(name == "publishing" for name, _ in self._errors):
+                    return
+
+    def _publish(self) -> None:
+        while True:
+            sample = self._samples.get()
+            if sample is _END:
+                return
+            for sink in self.sinks:
+                sink(sample)
