@@ -3,6 +3,7 @@
 Subcommands:
     track   correlate points of interest between a reference image and target images.
     bench   accuracy and speed benchmarks of the measurement core (reports with figures).
+    plan    motion blur of an exposure, and the exposure and frame period for a blur budget.
 
 Bad input ends with one line `extensometer: error: ...` naming the culprit and exit status 2.
 """
@@ -52,6 +53,7 @@ _window_size = _number(int, lambda v: v >= 3 and v % 2 == 1, "must be an odd siz
 _non_negative_int = _number(int, lambda v: v >= 0, "must be >= 0")
 _non_negative_float = _number(float, lambda v: v >= 0, "must be a finite number >= 0")
 _finite_float = _number(float, lambda v: True, "is not finite")
+_positive_float = _number(float, lambda v: v > 0, "must be a finite number > 0")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -120,7 +122,74 @@ def build_parser() -> argparse.ArgumentParser:
     speed = benches.add_parser("speed", help="IC-GN and integer-search throughput")
     speed.add_argument("--json", action="store_true", help="print JSON instead of a table")
     speed.add_argument("--out", metavar="FILE", help="also write the JSON to FILE")
+
+    _add_plan_parser(commands)
     return parser
+
+
+def _add_plan_parser(commands) -> None:
+    from appliance.planner import DEFAULT_MAX_PERIOD_S
+
+    plan = commands.add_parser(
+        "plan",
+        help="motion blur of an exposure; exposure and frame period for a blur budget",
+        description=(
+            "Thin-lens optics (Zhang et al. 2016, Eq. 7-8) and motion blur (Eq. 9) of the "
+            "fastest gauge point at the given crosshead speed and exposure, then the longest "
+            "exposure whose blur stays within the blur budget and the longest frame period "
+            "whose frame-to-frame motion stays within the capture range."
+        ),
+    )
+    plan.add_argument(
+        "--focal-length-mm", type=_positive_float, required=True, help="focal length f, mm"
+    )
+    plan.add_argument(
+        "--object-distance-mm",
+        type=_positive_float,
+        required=True,
+        help="specimen-to-lens distance u, mm (> f)",
+    )
+    plan.add_argument(
+        "--pixel-size-um", type=_positive_float, required=True, help="sensor pixel pitch p, um"
+    )
+    plan.add_argument("--exposure-s", type=_positive_float, required=True, help="exposure T, s")
+    plan.add_argument(
+        "--speed-mm-min", type=_non_negative_float, required=True, help="crosshead speed, mm/min"
+    )
+    plan.add_argument(
+        "--speed-fraction",
+        type=_positive_float,
+        default=1.0,
+        help="fastest gauge point speed / crosshead speed (1, a safe bound)",
+    )
+    plan.add_argument(
+        "--blur-budget-px", type=_positive_float, default=1.0, help="largest blur wanted, px (1)"
+    )
+    plan.add_argument(
+        "--capture-range-px",
+        type=_positive_float,
+        default=20.0,
+        help="largest frame-to-frame motion the search covers, px (20)",
+    )
+    plan.add_argument(
+        "--min-exposure-us",
+        type=_positive_float,
+        default=50.0,
+        help="shortest exposure the camera allows, us (50)",
+    )
+    plan.add_argument(
+        "--max-exposure-us",
+        type=_positive_float,
+        default=20000.0,
+        help="longest exposure wanted, us (20000)",
+    )
+    plan.add_argument(
+        "--max-period-s",
+        type=_positive_float,
+        default=DEFAULT_MAX_PERIOD_S,
+        help=f"longest frame period wanted, s ({DEFAULT_MAX_PERIOD_S:g}; the period at speed 0)",
+    )
+    plan.add_argument("--json", action="store_true", help="print JSON on stdout")
 
 
 def _track(args: argparse.Namespace) -> int:
@@ -222,6 +291,95 @@ def _emit(args: argparse.Namespace, measured: list[dict]) -> None:
                 )
 
 
+def _plan(args: argparse.Namespace) -> int:
+    from appliance.optics import Optics
+    from appliance.planner import motion_blur_length, plan_exposure
+
+    if not args.object_distance_mm > args.focal_length_mm:
+        raise InputError(
+            f"plan: --object-distance-mm {args.object_distance_mm:g} must exceed "
+            f"--focal-length-mm {args.focal_length_mm:g} for a real image"
+        )
+    if args.min_exposure_us > args.max_exposure_us:
+        raise InputError(
+            f"plan: --min-exposure-us {args.min_exposure_us:g} exceeds "
+            f"--max-exposure-us {args.max_exposure_us:g}"
+        )
+    if args.max_exposure_us * 1e-6 > args.max_period_s:
+        raise InputError(
+            f"plan: --max-period-s {args.max_period_s:g} is shorter than "
+            f"--max-exposure-us {args.max_exposure_us:g}"
+        )
+    optics = Optics(args.focal_length_mm, args.object_distance_mm, args.pixel_size_um)
+    point_speed = args.speed_fraction * args.speed_mm_min
+    blur = motion_blur_length(optics, point_speed, args.exposure_s)
+    plan = plan_exposure(
+        optics,
+        args.speed_mm_min,
+        blur_budget_px=args.blur_budget_px,
+        capture_range_px=args.capture_range_px,
+        min_exposure_s=args.min_exposure_us * 1e-6,
+        max_exposure_s=args.max_exposure_us * 1e-6,
+        max_period_s=args.max_period_s,
+        speed_fraction=args.speed_fraction,
+    )
+    document = {
+        "image_distance_mm": optics.image_distance_mm,
+        "magnification": optics.magnification,
+        "scale_mm_per_px": optics.scale_mm_per_px,
+        "speed_mm_min": args.speed_mm_min,
+        "point_speed_mm_min": point_speed,
+        "exposure_s": args.exposure_s,
+        "blur_um": blur.um,
+        "blur_px": blur.px,
+        "blur_budget_px": args.blur_budget_px,
+        "capture_range_px": args.capture_range_px,
+        "planned_exposure_s": plan.exposure_s,
+        "planned_frame_period_s": plan.frame_period_s,
+        "planned_frame_rate_hz": plan.frame_rate_hz,
+        "planned_blur_um": plan.blur_um,
+        "planned_blur_px": plan.blur_px,
+        "planned_motion_per_frame_px": plan.motion_per_frame_px,
+        "budget_met": plan.budget_met,
+        "period_covers_exposure": plan.period_covers_exposure,
+        "exposure_limit": plan.exposure_limit,
+        "period_limit": plan.period_limit,
+    }
+    if args.json:
+        json.dump(document, sys.stdout, indent=1)
+        sys.stdout.write("\n")
+        return 0
+    budget = "met" if plan.budget_met else "NOT met: let LPQ or track --blur-px carry the blur"
+    capture = "" if plan.period_covers_exposure else ", exceeded: period = exposure"
+    rows = [
+        ("image distance", f"{optics.image_distance_mm:.4f} mm"),
+        ("magnification", f"{optics.magnification:.6f}"),
+        ("scale", f"{optics.scale_mm_per_px * 1e3:.4f} um/px (object plane)"),
+        ("point speed", f"{point_speed:g} mm/min"),
+        (f"blur at {args.exposure_s * 1e3:g} ms", f"{blur.um:.3f} um = {blur.px:.3f} px"),
+        ("planned exposure", f"{plan.exposure_s * 1e3:.4f} ms (set by {plan.exposure_limit})"),
+        (
+            "planned blur",
+            f"{plan.blur_um:.3f} um = {plan.blur_px:.3f} px "
+            f"(budget {args.blur_budget_px:g} px {budget})",
+        ),
+        (
+            "planned period",
+            f"{plan.frame_period_s * 1e3:.4f} ms = {plan.frame_rate_hz:.3f} Hz "
+            f"(set by {plan.period_limit})",
+        ),
+        (
+            "motion per frame",
+            f"{plan.motion_per_frame_px:.3f} px (capture range {args.capture_range_px:g} px"
+            f"{capture})",
+        ),
+    ]
+    width = max(len(label) for label, _ in rows) + 2
+    for label, value in rows:
+        print(f"{label:<{width}}{value}")
+    return 0
+
+
 def _bench(args: argparse.Namespace) -> int:
     if args.bench == "accuracy":
         from appliance.bench.accuracy import run_accuracy_benchmark
@@ -238,6 +396,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = build_parser().parse_args(argv)
         if args.command == "track":
             return _track(args)
+        if args.command == "plan":
+            return _plan(args)
         return _bench(args)
     except InputError as error:
         print(f"extensometer: error: {error}", file=sys.stderr)
