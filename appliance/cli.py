@@ -4,6 +4,8 @@ Subcommands:
     track   correlate points of interest between a reference image and target images.
     bench   accuracy and speed benchmarks of the measurement core (reports with figures).
     plan    motion blur of an exposure, and the exposure and frame period for a blur budget.
+    run     a tensile test: measure strain until a strain limit or the break (`--sim`: the
+            simulated test, with its ground truth and errors in the summary).
 
 Bad input ends with one line `extensometer: error: ...` naming the culprit and exit status 2.
 """
@@ -122,9 +124,91 @@ def build_parser() -> argparse.ArgumentParser:
     speed = benches.add_parser("speed", help="IC-GN and integer-search throughput")
     speed.add_argument("--json", action="store_true", help="print JSON instead of a table")
     speed.add_argument("--out", metavar="FILE", help="also write the JSON to FILE")
+    simulated = benches.add_parser(
+        "sim", help="whole simulated tensile tests against their ground truth"
+    )
+    simulated.add_argument("--out", required=True, metavar="DIR", help="report directory")
+    simulated.add_argument("--quick", action="store_true", help="shortened tests")
 
     _add_plan_parser(commands)
+    _add_run_parser(commands)
     return parser
+
+
+def _add_run_parser(commands) -> None:
+    run = commands.add_parser(
+        "run",
+        help="run a tensile test (simulated with --sim)",
+        description=(
+            "Run a tensile test: take the reference image, place the gauge marks, start the "
+            "crosshead and measure strain until the strain limit or the break. Writes "
+            "strain.csv and summary.json to --out and prints the summary."
+        ),
+    )
+    run.add_argument("--config", type=Path, help="TOML configuration file (default: defaults)")
+    run.add_argument("--sim", action="store_true", help="use the simulated frame and camera")
+    run.add_argument("--material", choices=("rubber", "metal"), help="simulated material")
+    run.add_argument("--speed-mm-min", type=_positive_float, help="crosshead speed, mm/min")
+    run.add_argument("--exposure-us", type=_positive_float, help="exposure (default: planned)")
+    run.add_argument("--frame-rate-hz", type=_positive_float, help="frame rate (default: planned)")
+    run.add_argument("--seed", type=_non_negative_int, help="seed of the simulated world")
+    until = run.add_mutually_exclusive_group()
+    until.add_argument(
+        "--until-strain", type=_positive_float, help="stop at this engineering strain"
+    )
+    until.add_argument("--until-break", action="store_true", help="run to the break (default)")
+    pace = run.add_mutually_exclusive_group()
+    pace.add_argument("--realtime", action="store_true", help="simulate in real time")
+    pace.add_argument("--fast", action="store_true", help="simulate as fast as possible")
+    run.add_argument("--out", type=Path, help="output directory for strain.csv, summary.json")
+    run.add_argument("--json", action="store_true", help="print the summary as JSON, quietly")
+
+
+def _run_config(args: argparse.Namespace):
+    import dataclasses
+
+    from appliance.config import Config, load_config
+
+    config = load_config(args.config) if args.config else Config()
+    run_table = config.run
+    if args.speed_mm_min is not None:
+        run_table = dataclasses.replace(run_table, speed_mm_min=args.speed_mm_min)
+    if args.until_strain is not None:
+        run_table = dataclasses.replace(run_table, until_strain=args.until_strain)
+    if args.until_break:
+        run_table = dataclasses.replace(run_table, until_strain=0.0, until_break=True)
+    camera = config.camera
+    if args.exposure_us is not None:
+        camera = dataclasses.replace(camera, exposure_us=args.exposure_us)
+    if args.frame_rate_hz is not None:
+        camera = dataclasses.replace(camera, frame_rate_hz=args.frame_rate_hz)
+    sim = config.sim
+    if args.material is not None:
+        sim = dataclasses.replace(sim, material=args.material)
+    if args.seed is not None:
+        sim = dataclasses.replace(sim, seed=args.seed)
+    if args.realtime or args.fast:
+        sim = dataclasses.replace(sim, realtime=bool(args.realtime))
+    return dataclasses.replace(config, run=run_table, camera=camera, sim=sim)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from appliance.runner import print_summary, run_test
+    from hal.errors import HardwareError
+
+    config = _run_config(args)
+    progress = None if args.json or not sys.stderr.isatty() else sys.stderr
+    try:
+        outcome = run_test(config, simulate=args.sim, out_dir=args.out, progress=progress)
+    except HardwareError as error:
+        raise InputError(f"run: {error}") from None
+    except OSError as error:
+        raise InputError(f"run: {error.filename or ''}: {error.strerror}") from None
+    if args.json:
+        print(outcome.to_json())
+    else:
+        print_summary(outcome)
+    return 0 if outcome.summary.exit_status in ("completed", "break") else 1
 
 
 def _add_plan_parser(commands) -> None:
@@ -385,6 +469,10 @@ def _bench(args: argparse.Namespace) -> int:
         from appliance.bench.accuracy import run_accuracy_benchmark
 
         return run_accuracy_benchmark(Path(args.out), quick=args.quick)
+    if args.bench == "sim":
+        from appliance.bench.simulated import run_simulated_benchmark
+
+        return run_simulated_benchmark(Path(args.out), quick=args.quick)
     from appliance.bench.speed import run_speed_benchmark
 
     return run_speed_benchmark(as_json=args.json, out=Path(args.out) if args.out else None)
@@ -398,6 +486,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _track(args)
         if args.command == "plan":
             return _plan(args)
+        if args.command == "run":
+            return _run(args)
         return _bench(args)
     except InputError as error:
         print(f"extensometer: error: {error}", file=sys.stderr)

@@ -34,7 +34,9 @@ class CameraConfig:
     `exposure_us` and `frame_rate_hz` left out are chosen by the exposure planner
     (`appliance.planner`) from the test speed and the optics: the longest exposure within
     `blur_budget_px` of motion blur (between `min_exposure_us` and `max_exposure_us`) and a
-    frame rate that keeps the frame-to-frame motion of the marks inside the tracker's search.
+    frame rate that keeps the frame-to-frame motion of the marks inside the tracker's search,
+    and no lower than `min_frame_rate_hz` (the rate the controller receives strain at), unless
+    the exposure does not allow it.
     """
 
     url: str = "sim://camera"
@@ -42,6 +44,7 @@ class CameraConfig:
     gain_db: float = field(default=0.0, metadata=_range(0.0, 48.0))
     pixel_format: str = field(default="Mono8", metadata={"choices": ("Mono8", "Mono12")})
     frame_rate_hz: float | None = field(default=None, metadata=_range(0.1, 10000.0))
+    min_frame_rate_hz: float = field(default=20.0, metadata=_range(0.1, 10000.0))
     blur_budget_px: float = field(default=1.0, metadata=_range(0.0, 100.0))
     min_exposure_us: float = field(default=100.0, metadata=_range(1.0, 1e7))
     max_exposure_us: float = field(default=20000.0, metadata=_range(1.0, 1e7))

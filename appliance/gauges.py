@@ -175,12 +175,15 @@ def place_marks(
     mark_width_px: float = 40.0,
     points_per_mark: int = 3,
     transverse_width_mm: float | None = None,
+    along_axis: bool = False,
 ) -> tuple[np.ndarray, StrainGaugesLayout]:
     """Place gauge marks automatically, centred on the specimen.
 
-    Each axial mark is a line of `points_per_mark` points across the specimen, `mark_width_px`
-    long, at +- L0/2 from the centre along the loading axis; the optional transverse marks are
-    single points at +- width/2 across the axis through the centre.
+    Each axial mark is a line of `points_per_mark` points, `mark_width_px` long, centred at
+    +- L0/2 from the centre along the loading axis: across the specimen (the default, for
+    wide specimens) or along the axis (`along_axis`, for narrow specimens whose width holds
+    only one subset). The optional transverse marks are single points at +- width/2 across
+    the axis through the centre.
 
     Args:
         centre_px: specimen centre (x, y) in the reference image, px.
@@ -190,6 +193,7 @@ def place_marks(
             rows, specimen vertical).
         mark_width_px: length of each mark's line of points across the axis, px.
         points_per_mark: points per axial mark (>= 1).
+        along_axis: lay each mark's line along the axis instead of across it.
         transverse_width_mm: spacing of the transverse marks, mm; None = no transverse gauge.
 
     Returns:
@@ -207,7 +211,8 @@ def place_marks(
     offsets = (
         np.linspace(-0.5, 0.5, points_per_mark) * mark_width_px if points_per_mark > 1 else [0]
     )
-    points = [centre + sign * half * along + o * across for sign in (-1, 1) for o in offsets]
+    spread = along if along_axis else across
+    points = [centre + sign * half * along + o * spread for sign in (-1, 1) for o in offsets]
     first = tuple(range(points_per_mark))
     second = tuple(range(points_per_mark, 2 * points_per_mark))
     transverse = None

@@ -54,3 +54,17 @@ def test_bad_gauges_and_calibrations_are_refused():
     assert Calibration.from_known_distance(25.0, 500.0).scale_mm_per_px == pytest.approx(0.05)
     with pytest.raises(ValueError, match="zero length"):
         StrainGauges(Gauge((0,), (1,)), np.zeros((2, 2)), Calibration(1.0))
+
+
+def test_marks_along_the_axis_for_narrow_specimens():
+    points, layout = place_marks(
+        (50.0, 200.0),
+        10.0,
+        Calibration(0.1),
+        points_per_mark=3,
+        mark_width_px=16.0,
+        along_axis=True,
+    )
+    assert points[:, 0].tolist() == [50.0] * 6
+    assert points[:, 1].tolist() == pytest.approx([142, 150, 158, 242, 250, 258])
+    assert layout.axial.length_px(points) == pytest.approx(100.0)

@@ -1,0 +1,325 @@
+"""One tensile test from configuration to summary: devices, exposure plan, marks, loop, outputs.
+
+`run_test` is what `extensometer run` does:
+
+1. devices: the simulated world (`--sim`: camera and frame on one virtual clock, with ground
+   truth) or the camera and frame named by the configuration's URLs;
+2. exposure: the configured exposure and frame rate, or the planner's (`appliance.planner`):
+   the longest exposure whose motion blur at the test speed stays within the blur budget and
+   the frame rate that keeps the marks' frame-to-frame motion inside the tracker's search;
+3. marks: placed on the reference image, centred on the specimen, at the configured gauge
+   length; each axial mark a short line of points;
+4. the loop (`appliance.loop`) until the strain limit, the break, or an interrupt;
+5. outputs: `strain.csv` (every sample, with the truth when simulated) and `summary.json`
+   in the output directory, and the summary returned.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+
+from appliance.config import Config
+from appliance.errors import InputError
+from appliance.gauges import Calibration, StrainGauges, place_marks
+from appliance.loop import MeasurementLoop, StopCriteria, StrainSample
+from appliance.optics import Optics
+from appliance.planner import ExposurePlan, motion_blur_length, plan_exposure
+from appliance.strain_file import StrainCsvWriter
+from appliance.summary import RunSummary, SampleRecord
+from appliance.tracking import MarkTracker, TrackerSettings, TrackStatus
+from hal.camera.base import CameraSettings, PixelFormat, TriggerInfo, TriggerMode
+from hal.clock import Pace
+
+TRUTH_COLUMNS = ("true_engineering_strain", "true_elongation_mm", "strain_error")
+
+
+@dataclass
+class RunOutcome:
+    """What a run produced.
+
+    Attributes:
+        summary: the figures of the run (with `extra` merged in `as_dict`).
+        extra: run facts beyond the summary: exposure plan, gauge length, duration.
+        csv_path, summary_path: files written (None without an output directory).
+    """
+
+    summary: RunSummary
+    extra: dict[str, Any] = field(default_factory=dict)
+    csv_path: Path | None = None
+    summary_path: Path | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        """Summary and facts as one dictionary."""
+        return {**self.summary.as_dict(), **self.extra}
+
+    def to_json(self) -> str:
+        """Summary and facts as JSON (NaN and infinities as null)."""
+        return json.dumps(_json_ready(self.as_dict()), indent=2)
+
+
+def _optics(config: Config, fallback: Optics | None) -> Optics:
+    o = config.optics
+    given = (o.focal_length_mm, o.object_distance_mm, o.pixel_size_um)
+    if all(v is None for v in given) and fallback is not None:
+        return fallback
+    missing = [
+        k
+        for k, v in zip(
+            ("focal_length_mm", "object_distance_mm", "pixel_size_um"), given, strict=True
+        )
+        if v is None
+    ]
+    if missing:
+        raise InputError(f"[optics] {missing[0]}: required (the camera's optics must be known)")
+    try:
+        return Optics(*given)
+    except ValueError as exc:
+        raise InputError(f"[optics]: {exc}") from None
+
+
+def exposure_for(config: Config, optics: Optics, speed_mm_min: float) -> ExposurePlan:
+    """The exposure plan for a test speed; configured exposure and rate take precedence."""
+    camera = config.camera
+    plan = plan_exposure(
+        optics,
+        speed_mm_min,
+        blur_budget_px=camera.blur_budget_px,
+        capture_range_px=float(config.tracking.search_radius_px),
+        min_exposure_s=camera.min_exposure_us * 1e-6,
+        max_exposure_s=camera.max_exposure_us * 1e-6,
+    )
+    exposure_s = plan.exposure_s if camera.exposure_us is None else camera.exposure_us * 1e-6
+    if camera.frame_rate_hz is None:
+        period_s = max(min(plan.frame_period_s, 1.0 / camera.min_frame_rate_hz), exposure_s)
+    else:
+        period_s = 1.0 / camera.frame_rate_hz
+    if exposure_s > period_s:
+        raise InputError(
+            f"[camera] exposure_us: {exposure_s * 1e6:g} exceeds the frame period "
+            f"{period_s * 1e6:g} us"
+        )
+    blur = motion_blur_length(optics, speed_mm_min, exposure_s)
+    motion = blur.px / exposure_s * period_s if exposure_s > 0 else 0.0
+    return dataclasses.replace(
+        plan,
+        exposure_s=exposure_s,
+        frame_period_s=period_s,
+        blur_um=blur.um,
+        blur_px=blur.px,
+        motion_per_frame_px=motion,
+        budget_met=bool(blur.px <= camera.blur_budget_px),
+    )
+
+
+class _Progress:
+    """One self-rewriting status line on a terminal."""
+
+    def __init__(self, stream: TextIO) -> None:
+        self.stream = stream
+
+    def __call__(self, sample: StrainSample) -> None:
+        r = sample.reading
+        machine = sample.machine
+        force = f" force {machine.force_n:9.1f} N" if machine is not None else ""
+        flag = "valid" if sample.data_valid else "INVALID"
+        self.stream.write(
+            f"\r  t {sample.time_s:7.2f} s  frame {sample.index:6d}  strain "
+            f"{r.engineering_strain * 100:9.3f} %{force}  {flag}"
+        )
+        self.stream.flush()
+
+    def close(self) -> None:
+        self.stream.write("\n")
+        self.stream.flush()
+
+
+def run_test(
+    config: Config,
+    *,
+    simulate: bool,
+    out_dir: Path | None = None,
+    progress: TextIO | None = None,
+) -> RunOutcome:
+    """Run one test as configured; see the module docstring.
+
+    Args:
+        config: the validated configuration.
+        simulate: use the simulated world (ground truth in the outputs).
+        out_dir: where to write strain.csv and summary.json (created); None = nowhere.
+        progress: a terminal stream for the progress line; None = quiet.
+
+    Raises:
+        InputError: a configuration that cannot run (named key).
+        HardwareError: a device that cannot be opened or configured.
+    """
+    if not simulate:
+        raise InputError(
+            "run: only the simulated devices are available in this version (use --sim)"
+        )
+    from appliance.sim.world import SimWorld
+
+    world = SimWorld.from_config(config)
+    optics = _optics(config, world.optics)
+    speed = world.speed_mm_min
+    plan = exposure_for(config, optics, speed)
+    calibration = Calibration.from_optics(optics.pixel_size_um, optics.magnification)
+    gauge_length_mm = config.gauge.length_mm or world.gauge_length_mm
+    settings = TrackerSettings(
+        subset_px=config.tracking.subset_px,
+        min_subset_px=config.tracking.min_subset_px,
+        search=config.tracking.search,
+        search_radius_px=config.tracking.search_radius_px,
+        reacquire_search=config.tracking.reacquire_search,
+        reacquire_radius_px=config.tracking.reacquire_radius_px,
+        prefilter_sigma_px=config.tracking.prefilter_sigma_px,
+        min_zncc=config.tracking.min_zncc,
+        update_zncc=config.tracking.update_zncc,
+        update_deformation=config.tracking.update_deformation,
+    )
+    camera, frame = world.camera, world.frame
+    camera.open()
+    frame.open()
+    pixel_format = (
+        PixelFormat.MONO8 if config.camera.pixel_format == "Mono8" else PixelFormat.MONO12
+    )
+    camera.configure(
+        CameraSettings(
+            exposure_us=plan.exposure_s * 1e6,
+            gain_db=config.camera.gain_db,
+            pixel_format=pixel_format,
+        )
+    )
+    camera.prepare(TriggerInfo(mode=TriggerMode.INTERNAL, rate_hz=1.0 / plan.frame_period_s))
+
+    state: dict[str, Any] = {}
+
+    def setup(reference):
+        g = config.gauge
+        transverse = g.transverse_width_mm or None
+        points, layout = place_marks(
+            world.specimen_centre_px,
+            gauge_length_mm,
+            calibration,
+            mark_width_px=g.mark_spacing_px * (g.points_per_mark - 1),
+            points_per_mark=g.points_per_mark,
+            transverse_width_mm=transverse,
+            along_axis=True,
+        )
+        marks = [layout.axial.first, layout.axial.second]
+        if layout.transverse is not None:
+            marks += [layout.transverse.first, layout.transverse.second]
+        image = np.asarray(reference.image, dtype=np.float64)
+        state["truth"] = world.gauge_truth(points, layout.axial, reference)
+        state["points"] = points
+        tracker = MarkTracker(image, points, marks, settings)
+        gauges = StrainGauges(layout.axial, points, calibration, layout.transverse)
+        return tracker, gauges
+
+    records: list[SampleRecord] = []
+    truth_rows: dict[int, dict[str, float]] = {}
+
+    def truth_of(sample: StrainSample) -> dict[str, float]:
+        if sample.index not in truth_rows:
+            true_strain, true_elongation = state["truth"].at(sample)
+            truth_rows[sample.index] = {
+                "true_engineering_strain": true_strain,
+                "true_elongation_mm": true_elongation,
+                "strain_error": sample.reading.engineering_strain - true_strain,
+            }
+        return truth_rows[sample.index]
+
+    def record(sample: StrainSample) -> None:
+        truth = truth_of(sample)
+        records.append(
+            SampleRecord(
+                strain=sample.reading.engineering_strain,
+                elongation_mm=sample.reading.elongation_mm,
+                valid=sample.data_valid,
+                points_lost=int((sample.status == TrackStatus.LOST).sum()),
+                reference_updates=sample.reference_updates,
+                true_strain=truth["true_engineering_strain"],
+                true_elongation_mm=truth["true_elongation_mm"],
+            )
+        )
+        truth_rows.pop(sample.index, None)
+        state["last_time_s"] = sample.time_s
+
+    sinks: list[Callable[[StrainSample], None]] = []
+    writer = None
+    csv_path = summary_path = None
+    if out_dir is not None:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        csv_path = out_dir / "strain.csv"
+        writer = StrainCsvWriter(csv_path, TRUTH_COLUMNS, truth_of)
+        sinks.append(writer)
+    sinks.append(record)
+    bar = _Progress(progress) if progress is not None else None
+    if bar is not None:
+        sinks.append(bar)
+    until_strain = config.run.until_strain or None
+    loop = MeasurementLoop(
+        camera,
+        frame,
+        setup,
+        sinks=sinks,
+        block_when_full=world.pace is Pace.FAST,
+        start_speed_mm_min=speed,
+    )
+    try:
+        result = loop.run(
+            StopCriteria(until_strain=until_strain, until_break=config.run.until_break)
+        )
+    finally:
+        if writer is not None:
+            writer.close()
+        if bar is not None:
+            bar.close()
+        camera.close()
+        frame.close()
+    summary = RunSummary.from_run(result, records)
+    extra = {
+        "material": config.sim.material,
+        "speed_mm_min": speed,
+        "gauge_length_mm": gauge_length_mm,
+        "scale_mm_per_px": calibration.scale_mm_per_px,
+        "exposure_us": plan.exposure_s * 1e6,
+        "frame_rate_hz": 1.0 / plan.frame_period_s,
+        "blur_px_at_crosshead_speed": plan.blur_px,
+        "blur_budget_met": bool(plan.budget_met),
+        "test_duration_s": state.get("last_time_s", 0.0),
+        "points": int(len(state.get("points", []))),
+        "run_states": [t.target.value for t in loop.state.history],
+    }
+    outcome = RunOutcome(summary, extra, csv_path)
+    if out_dir is not None:
+        summary_path = out_dir / "summary.json"
+        summary_path.write_text(outcome.to_json() + "\n")
+        outcome.summary_path = summary_path
+    return outcome
+
+
+def _json_ready(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _json_ready(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_json_ready(v) for v in value]
+    return value
+
+
+def print_summary(outcome: RunOutcome, stream: TextIO = sys.stdout) -> None:
+    """The summary as aligned human-readable lines."""
+    for key, value in outcome.as_dict().items():
+        if isinstance(value, float):
+            value = f"{value:.6g}"
+        stream.write(f"{key:38s} {value}\n")

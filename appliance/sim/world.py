@@ -1,0 +1,231 @@
+"""The simulated tensile test: one world drives the simulated camera and frame on one clock.
+
+`SimWorld.from_config` builds, for a material preset:
+
+* the specimen and its material (`appliance.sim.specimen`, `appliance.sim.materials`) in a
+  bar model (`appliance.sim.bar`) loaded by a crosshead with an acceleration limit
+  (`appliance.sim.crosshead`), together the machine (`appliance.sim.machine`);
+* the camera's view of it (`appliance.sim.scene`), through the preset's lens and sensor
+  (`appliance.optics`), framed so that both gauge marks stay in view to the end of the test;
+* the devices, through the backend registry like any other: `sim://camera` and `sim://frame`
+  receive the scene, the machine and the shared `SimClock` (fast or real time).
+
+Presets (`PRESETS`):
+
+* rubber: ISO 37 type 1 dumbbell, Mooney-Rivlin rubber breaking at 600 %, 500 mm/min, a
+  2 MP camera (1024 x 2048, portrait) with a 16 mm lens at 400 mm, dense speckle;
+* metal: ISO 6892-1 flat specimen, steel, 10 mm/min, the same camera with a 35 mm lens at
+  400 mm.
+
+`GaugeTruth` gives the true strain and elongation of gauge marks placed in the reference
+image, as the material points they were placed on.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from appliance.config import Config
+from appliance.gauges import Gauge
+from appliance.loop import StrainSample
+from appliance.optics import Optics
+from appliance.sim.bar import BarModel
+from appliance.sim.crosshead import Crosshead
+from appliance.sim.machine import SimMachine
+from appliance.sim.materials import ElasticPlastic, MooneyRivlin
+from appliance.sim.scene import SpecimenScene, SpeckleCoat
+from appliance.sim.specimen import Specimen
+from hal.camera.base import Frame
+from hal.clock import Pace, SimClock
+from hal.registry import camera_from_url, frame_from_url
+
+
+@dataclass(frozen=True)
+class SimPreset:
+    """A simulated test setup.
+
+    Attributes:
+        specimen: builds the specimen.
+        material: builds the material.
+        speed_mm_min: standard test speed.
+        optics: lens and sensor pixel.
+        sensor_size: (width, height) px.
+        speckle_radius_mm: speckle radius of the coat.
+        transverse_width_mm: spacing of the transverse marks (0 = none).
+    """
+
+    specimen: Callable[[], Specimen]
+    material: Callable[[], object]
+    speed_mm_min: float
+    optics: Optics
+    sensor_size: tuple[int, int]
+    speckle_radius_mm: float
+    transverse_width_mm: float
+
+
+PRESETS: dict[str, SimPreset] = {
+    "rubber": SimPreset(
+        specimen=Specimen.iso37_type1,
+        material=MooneyRivlin.filled_rubber,
+        speed_mm_min=500.0,
+        optics=Optics(focal_length_mm=16.0, object_distance_mm=400.0, pixel_size_um=5.5),
+        sensor_size=(1024, 2048),
+        speckle_radius_mm=0.3,
+        transverse_width_mm=0.0,
+    ),
+    "metal": SimPreset(
+        specimen=Specimen.iso6892_flat,
+        material=ElasticPlastic.steel_s355,
+        speed_mm_min=10.0,
+        optics=Optics(focal_length_mm=35.0, object_distance_mm=400.0, pixel_size_um=5.5),
+        sensor_size=(1024, 2048),
+        speckle_radius_mm=0.12,
+        transverse_width_mm=8.0,
+    ),
+}
+
+
+class SimWorld:
+    """Specimen, machine, scene, clock and the two simulated devices of one test.
+
+    Args:
+        preset: the setup.
+        optics: lens and sensor (the preset's unless given).
+        sensor_size: (width, height) px (the preset's unless given).
+        speed_mm_min: test speed (the preset's unless given).
+        end_strain: engineering strain of the gauge at which the test is expected to end
+            (frames the view); None = the material's break.
+        pace: FAST or REAL_TIME.
+        seed: seed of the speckle coat and of the camera noise.
+        read_noise, electrons_per_grey: camera noise (see `hal.camera.sim.SimCamera`).
+    """
+
+    def __init__(
+        self,
+        preset: SimPreset,
+        *,
+        optics: Optics | None = None,
+        sensor_size: tuple[int, int] | None = None,
+        speed_mm_min: float | None = None,
+        end_strain: float | None = None,
+        pace: Pace = Pace.FAST,
+        seed: int = 1,
+        read_noise: float = 0.5,
+        electrons_per_grey: float = 40.0,
+    ) -> None:
+        self.preset = preset
+        self.specimen = preset.specimen()
+        self.material = preset.material()
+        self.optics = optics or preset.optics
+        self.speed_mm_min = speed_mm_min or preset.speed_mm_min
+        self.pace = pace
+        self.clock = SimClock(pace)
+        self.bar = BarModel(self.specimen, self.material)
+        self.machine = SimMachine(self.bar, Crosshead())
+        width, height = sensor_size or preset.sensor_size
+        scale = self.optics.scale_mm_per_px
+        half_gauge = 0.5 * self.specimen.gauge_length_mm
+        end_d = self.bar.crosshead_for_gauge_strain(
+            -half_gauge, half_gauge, end_strain if end_strain else self.material.break_strain
+        )
+        end = self.bar.deformation(end_d).deformation
+        top = float(end.spatial_y(-half_gauge))
+        bottom = half_gauge
+        margin = 0.06 * height * scale
+        centre_y = 0.5 * (top + bottom)
+        if bottom - top + 2 * margin > height * scale:
+            centre_y = bottom + margin - 0.5 * height * scale
+        length = self.specimen.overall_length_mm
+        self.scene = SpecimenScene(
+            self.machine.deformation_at,
+            scale_mm_per_px=scale,
+            sensor_width=width,
+            sensor_height=height,
+            material_y_range_mm=(-0.5 * length, 0.5 * length),
+            half_width_mm=0.5 * self.specimen.end_width_mm,
+            centre_mm=(0.0, centre_y),
+            coat=SpeckleCoat(radius_mm=preset.speckle_radius_mm, seed=seed),
+        )
+        self.camera = camera_from_url(
+            "sim://camera",
+            scene=self.scene,
+            clock=self.clock,
+            seed=seed,
+            read_noise=read_noise,
+            electrons_per_grey=electrons_per_grey,
+        )
+        self.frame = frame_from_url("sim://frame", machine=self.machine, clock=self.clock)
+
+    @classmethod
+    def from_config(cls, config: Config) -> SimWorld:
+        """The world of a configuration's [sim] table and the related keys."""
+        preset = PRESETS[config.sim.material]
+        width = config.sim.sensor_width_px or preset.sensor_size[0]
+        height = config.sim.sensor_height_px or preset.sensor_size[1]
+        o = config.optics
+        optics = None
+        if o.focal_length_mm and o.object_distance_mm and o.pixel_size_um:
+            optics = Optics(o.focal_length_mm, o.object_distance_mm, o.pixel_size_um)
+        return cls(
+            preset,
+            optics=optics,
+            sensor_size=(width, height),
+            speed_mm_min=config.run.speed_mm_min,
+            end_strain=config.run.until_strain or None,
+            pace=Pace.REAL_TIME if config.sim.realtime else Pace.FAST,
+            seed=config.sim.seed,
+            read_noise=config.sim.read_noise_grey,
+            electrons_per_grey=config.sim.electrons_per_grey,
+        )
+
+    @property
+    def gauge_length_mm(self) -> float:
+        """The specimen's standard gauge length, mm."""
+        return self.specimen.gauge_length_mm
+
+    @property
+    def specimen_centre_px(self) -> tuple[float, float]:
+        """Pixel (x, y) of the undeformed specimen's centre."""
+        x, y = self.scene.pixel_of(0.0, 0.0)
+        return float(x), float(y)
+
+    def gauge_truth(self, points_px: np.ndarray, axial: Gauge, reference: Frame) -> GaugeTruth:
+        """Truth for gauge points placed at `points_px` in the reference frame."""
+        truth = reference.metadata["truth"]
+        material = self.scene.material_points(points_px, truth["time_s"])
+        return GaugeTruth(self.scene, material, axial, self.optics.scale_mm_per_px, points_px)
+
+
+class GaugeTruth:
+    """True engineering strain and elongation of an axial gauge, frame by frame.
+
+    The gauge's points are material points (where they were placed in the reference image);
+    in every frame their true image positions are the exposure-averaged positions the scene
+    rendered, and the true gauge length follows from them exactly as the measured one does
+    from the tracked positions.
+    """
+
+    def __init__(
+        self,
+        scene: SpecimenScene,
+        material_points_mm: np.ndarray,
+        axial: Gauge,
+        scale_mm_per_px: float,
+        reference_points_px: np.ndarray,
+    ) -> None:
+        self.scene = scene
+        self.material_points_mm = material_points_mm
+        self.axial = axial
+        self.scale = scale_mm_per_px
+        self.l0_px = axial.length_px(reference_points_px)
+
+    def at(self, sample: StrainSample) -> tuple[float, float]:
+        """(true engineering strain, true elongation mm) for the frame of `sample`."""
+        start = sample.timestamp_ns * 1e-9
+        stop = start + sample.exposure_us * 1e-6
+        positions = self.scene.image_positions(self.material_points_mm, start, stop)
+        length = self.axial.length_px(positions)
+        return (length - self.l0_px) / self.l0_px, (length - self.l0_px) * self.scale

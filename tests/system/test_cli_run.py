@@ -1,0 +1,110 @@
+"""`extensometer run --sim` as a user runs it: whole simulated tests in a real process."""
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+EXTENSOMETER = str(Path(sys.executable).with_name("extensometer"))
+
+SUMMARY_KEYS = (
+    "frames_processed",
+    "frames_dropped",
+    "latency_ms_p50",
+    "latency_ms_p99",
+    "final_strain",
+    "true_final_strain",
+    "max_abs_strain_error",
+    "max_rel_strain_error",
+    "max_elongation_error_um",
+    "lost_points",
+    "reference_updates",
+    "iso9513_class",
+)
+
+
+def run(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [EXTENSOMETER, "run", *args], capture_output=True, text=True, timeout=timeout, check=False
+    )
+
+
+def test_short_rubber_test_meets_the_strain_bounds(tmp_path):
+    done = run(
+        "--sim", "--material", "rubber", "--until-strain", "0.5", "--json", "--out", str(tmp_path)
+    )
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(done.stdout)
+    for key in SUMMARY_KEYS:
+        assert key in summary
+    assert summary["exit_status"] == "completed"
+    assert summary["final_strain"] >= 0.5
+    assert summary["frames_dropped"] == 0 and summary["lost_points"] == 0
+    assert summary["reference_updates"] > 0
+    # ISO 9513 class 0.5: |error| <= max(0.5 % of the reading, 1.5 um / L0)
+    assert summary["max_rel_strain_error"] <= 0.005
+    assert summary["iso9513_class"] in ("0.2", "0.5")
+    assert summary["run_states"] == ["armed", "running", "stopping", "idle"]
+    assert json.loads((tmp_path / "summary.json").read_text()) == summary
+    rows = list(csv.DictReader((tmp_path / "strain.csv").open()))
+    assert len(rows) == summary["frames_processed"]
+    errors = [abs(float(r["strain_error"])) for r in rows]
+    bounds = [max(0.005 * abs(float(r["engineering_strain"])), 1.5e-3 / 25.0) for r in rows]
+    assert all(e <= b for e, b in zip(errors, bounds, strict=True))
+
+
+def test_short_metal_test_meets_the_elongation_bound(tmp_path):
+    done = run("--sim", "--material", "metal", "--until-strain", "0.004", "--json")
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(done.stdout)
+    assert summary["max_elongation_error_um_below_300um"] <= 1.5
+    assert summary["lost_points"] == 0
+    assert summary["speed_mm_min"] == 10.0
+
+
+def test_the_simulated_world_is_deterministic_for_a_seed(tmp_path):
+    outputs = []
+    for name in ("a", "b"):
+        done = run(
+            "--sim",
+            "--until-strain",
+            "0.05",
+            "--seed",
+            "7",
+            "--out",
+            str(tmp_path / name),
+            "--json",
+        )
+        assert done.returncode == 0, done.stderr
+        rows = list(csv.DictReader((tmp_path / name / "strain.csv").open()))
+        outputs.append([(r["engineering_strain"], r["true_engineering_strain"]) for r in rows])
+    assert outputs[0] == outputs[1]
+
+
+@pytest.mark.parametrize(
+    ("args", "culprit"),
+    [
+        (["--sim", "--speed-mm-min", "-5"], "--speed-mm-min"),
+        (["--sim", "--material", "wood"], "--material"),
+        (["--sim", "--until-strain", "1", "--until-break"], "--until-break"),
+        (["--sim", "--exposure-us", "fast"], "--exposure-us"),
+        (["--sim", "--config", "absent.toml"], "absent.toml"),
+        (["--until-strain", "0.1"], "--sim"),
+    ],
+)
+def test_bad_values_give_one_line_naming_the_culprit(args, culprit):
+    done = run(*args, timeout=120)
+    assert done.returncode == 2
+    assert culprit in done.stderr and done.stderr.count("\n") == 1
+    assert "Traceback" not in done.stderr
+
+
+def test_bad_configuration_key_is_named(tmp_path):
+    config = tmp_path / "run.toml"
+    config.write_text("[tracking]\nsubset_px = 40\n")
+    done = run("--sim", "--config", str(config), timeout=120)
+    assert done.returncode == 2
+    assert f"{config}: [tracking] subset_px: must be odd" in done.stderr
