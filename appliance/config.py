@@ -77,7 +77,7 @@ class TrackingConfig:
 
     subset_px: int = field(default=41, metadata=_range(5, 301, odd=True))
     min_subset_px: int = field(default=11, metadata=_range(5, 301, odd=True))
-    search: str = field(default="zncc", metadata={"choices": ("zncc", "lpq")})
+    search: str = field(default="none", metadata={"choices": ("none", "zncc", "lpq")})
     search_radius_px: int = field(default=10, metadata=_range(0, 1000))
     reacquire_search: str = field(default="zncc", metadata={"choices": ("zncc", "lpq")})
     reacquire_radius_px: int = field(default=40, metadata=_range(0, 1000))

@@ -56,7 +56,8 @@ class StrainSample:
         positions: (n, 2) tracked positions, px.
         status: (n,) `appliance.tracking.TrackStatus`.
         zncc: (n,) ZNCC of each point.
-        data_valid: every gauge mark had at least one measured point.
+        data_valid: every axial gauge mark had at least one measured point, and the force
+            has not fallen as after a break (a frame of a broken specimen is not a strain).
         reference_updates: references replaced after this frame.
         machine: the controller's state read with the frame (None if unavailable).
         latency_s: wall time from frame delivery to this sample.
@@ -336,7 +337,15 @@ class MeasurementLoop:
                 tracked = tracker.track(frame.image, time_s, frame.exposure_us * 1e-6)
                 reading = gauges.read(tracked.positions)
                 measured = tracked.measured
-                valid = all(measured[list(mark)].any() for mark in axial_marks)
+                marks_seen = all(measured[list(mark)].any() for mark in axial_marks)
+                if machine is not None:
+                    peak_force = max(peak_force, machine.force_n)
+                force_broken = (
+                    machine is not None
+                    and peak_force >= detection.min_peak_force_n
+                    and machine.force_n < detection.force_drop_fraction * peak_force
+                )
+                valid = marks_seen and not force_broken
                 now = self._wall()
                 self._result.tracking_time_s += now - started
                 sample = StrainSample(
@@ -360,14 +369,8 @@ class MeasurementLoop:
                 self._result.latencies_s.append(sample.latency_s)
                 self._publish_sample(sample)
                 strain = reading.engineering_strain
-                lost_run = 0 if valid else lost_run + 1
-                if machine is not None:
-                    peak_force = max(peak_force, machine.force_n)
-                if criteria.until_break and (
-                    machine is not None
-                    and peak_force >= detection.min_peak_force_n
-                    and machine.force_n < detection.force_drop_fraction * peak_force
-                ):
+                lost_run = 0 if marks_seen else lost_run + 1
+                if criteria.until_break and force_broken:
                     self._finish(
                         "break",
                         f"break: force fell to {machine.force_n:.1f} N "

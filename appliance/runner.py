@@ -252,6 +252,9 @@ def run_test(
         )
         truth_rows.pop(sample.index, None)
         state["last_time_s"] = sample.time_s
+        if sample.data_valid:
+            blur = state["truth"].blur_px(sample)
+            state["max_blur_px"] = max(state.get("max_blur_px", 0.0), blur)
 
     sinks: list[Callable[[StrainSample], None]] = []
     writer = None
@@ -295,6 +298,7 @@ def run_test(
         "frame_rate_hz": 1.0 / plan.frame_period_s,
         "blur_px_at_crosshead_speed": plan.blur_px,
         "blur_budget_met": bool(plan.budget_met),
+        "max_blur_px_at_marks": state.get("max_blur_px"),
         "test_duration_s": state.get("last_time_s", 0.0),
         "points": int(len(state.get("points", []))),
         "run_states": [t.target.value for t in loop.state.history],

@@ -10,7 +10,9 @@ a calibration device) it adds the errors:
 * `max_elongation_error_um`: largest |measured - true| elongation, um; and the same over the
   samples whose true elongation is below `small_elongation_um` (300 um: the range where
   ISO 9513's absolute limits decide);
-* `iso9513_class`: the best ISO 9513 class whose bias limits every valid sample meets.
+* `iso9513_class`: the best ISO 9513 class whose bias limits every valid sample meets;
+* `lost_points`: point-frames not measured, over valid samples (a frame of the broken
+  specimen is not valid, and its points are not counted).
 """
 
 from __future__ import annotations
@@ -105,7 +107,7 @@ class RunSummary:
             max_rel_strain_error=_stat(np.max, strain_error[large] / np.abs(strain[large])),
             max_elongation_error_um=_stat(np.max, elong_error),
             max_elongation_error_um_below_300um=_stat(np.max, elong_error[small]),
-            lost_points=sum(r.points_lost for r in records),
+            lost_points=sum(r.points_lost for r in valid),
             invalid_samples=sum(not r.valid for r in records),
             reference_updates=sum(r.reference_updates for r in records),
             iso9513_class=best_class(elong, true_elong) if truthful else None,

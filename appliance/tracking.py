@@ -10,8 +10,9 @@ points) from frame to frame and *updates its reference* whenever the match degra
   from the last two frames). Only these windows are filtered and interpolated, so the cost per
   frame does not depend on the sensor size, and the windows follow the marks wherever they
   travel;
-* in each window an integer ZNCC (or LPQ) search, pre-warped with the mark's current
-  deformation, seeds IC-GN; a point is *tracked* when IC-GN converges with ZNCC >= `min_zncc`;
+* in each window IC-GN starts from the predicted position and the mark's current deformation
+  (optionally after an integer ZNCC or LPQ search every frame); a point is *tracked* when
+  IC-GN converges with ZNCC >= `min_zncc` within `search_radius_px` of its prediction;
 * the reference of a mark is replaced by the current frame when the ZNCC of any of its points
   falls below `update_zncc`, a point had to be re-acquired, or the deformation since the
   reference (largest displacement gradient) exceeds `update_deformation`; never from a frame
@@ -29,8 +30,9 @@ points) from frame to frame and *updates its reference* whenever the match degra
   not jump; a mark with no tracked point keeps its predicted position and is reported lost;
 * motion blur: the first reference is sharp, later frames may be blurred by the marks' motion
   during the exposure. With the exposure known, each mark's blur is estimated from its
-  tracked velocity and the first reference is blurred to match (`appliance.dic.correlation`);
-  updated references come from frames exposed at the same speed and are used as they are.
+  tracked velocity and the first reference is blurred to match (`appliance.dic.correlation`;
+  when a frame's own measurement changes the estimate, it is matched again); updated
+  references come from frames exposed at the same speed and are used as they are.
 
 Directions: the loading axis is a unit vector in image coordinates (default: along the rows,
 the image y axis); "across" is perpendicular to it.
@@ -69,8 +71,11 @@ class TrackerSettings:
     Attributes:
         subset_px: subset side at the first reference (odd).
         min_subset_px: smallest subset after lateral contraction (odd).
-        search: integer search in every frame: "zncc" or "lpq".
-        search_radius_px: search half-width around the predicted position.
+        search: integer search in every frame: "none" (IC-GN starts from the predicted
+            position and deformation: the fast default, since the prediction is within a
+            pixel or two of the truth) or "zncc" / "lpq" (searched every frame).
+        search_radius_px: half-width of the every-frame window around the prediction: the
+            search radius, and the furthest a match may land from its prediction.
         reacquire_search: search used to re-acquire a failed point: "zncc" or "lpq".
         reacquire_radius_px: its half-width.
         prefilter_sigma_px: Gaussian pre-filter of IC-GN.
@@ -86,7 +91,7 @@ class TrackerSettings:
 
     subset_px: int = 41
     min_subset_px: int = 11
-    search: str = "zncc"
+    search: str = "none"
     search_radius_px: int = 10
     reacquire_search: str = "zncc"
     reacquire_radius_px: int = 40
@@ -103,9 +108,10 @@ class TrackerSettings:
             raise ValueError(f"subset_px must be an odd size >= 5, got {self.subset_px}")
         if not 5 <= self.min_subset_px <= self.subset_px or self.min_subset_px % 2 == 0:
             raise ValueError(f"min_subset_px must be odd in 5..subset_px, got {self.min_subset_px}")
-        for name in ("search", "reacquire_search"):
-            if getattr(self, name) not in ("zncc", "lpq"):
-                raise ValueError(f"{name} must be zncc or lpq, got {getattr(self, name)!r}")
+        if self.search not in ("none", "zncc", "lpq"):
+            raise ValueError(f"search must be none, zncc or lpq, got {self.search!r}")
+        if self.reacquire_search not in ("zncc", "lpq"):
+            raise ValueError(f"reacquire_search must be zncc or lpq, got {self.reacquire_search!r}")
         if not 0 <= self.search_radius_px <= self.reacquire_radius_px:
             raise ValueError("need 0 <= search_radius_px <= reacquire_radius_px")
         if not -1 <= self.min_zncc <= self.update_zncc <= 1:
@@ -169,22 +175,27 @@ class _Mark:
         s = self.settings
         self.reference_positions = positions.copy()
         lo, hi = positions.min(axis=0), positions.max(axis=0)
-        border = self.subset // 2 + s.reacquire_radius_px + s.margin_px
-        self.origin = np.floor(lo).astype(np.int64) - border
-        width, height = (np.ceil(hi).astype(np.int64) + border + 1 - self.origin).tolist()
-        self.reference_crop = _crop(image, self.origin, width, height)
+        self.stages = {}
+        for name, radius in (
+            ("track", s.search_radius_px),
+            ("reacquire", s.reacquire_radius_px),
+        ):
+            border = self.subset // 2 + radius + s.margin_px
+            origin = np.floor(lo).astype(np.int64) - border
+            width, height = (np.ceil(hi).astype(np.int64) + border + 1 - origin).tolist()
+            self.stages[name] = _Stage(origin, _crop(image, origin, width, height))
         self.prepare(0.0)
 
     def prepare(self, blur_px: float) -> None:
-        """(Re)build the correlators on the reference crop, blurred by `blur_px` along the axis."""
+        """(Re)build the correlators on the reference crops, blurred by `blur_px` along the axis."""
         s = self.settings
         self.blur_applied = blur_px
-        self.correlators = {}
         for name, search, radius in (
             ("track", s.search, s.search_radius_px),
             ("reacquire", s.reacquire_search, s.reacquire_radius_px),
         ):
-            correlator = Correlator(
+            stage = self.stages[name]
+            stage.correlator = Correlator(
                 subset=self.subset,
                 search=search,
                 search_radius=radius,
@@ -192,8 +203,16 @@ class _Mark:
                 prefilter_sigma=s.prefilter_sigma_px,
                 threads=1,
             )
-            correlator.prepare(self.reference_crop, self.reference_positions - self.origin)
-            self.correlators[name] = correlator
+            stage.correlator.prepare(stage.crop, self.reference_positions - stage.origin)
+
+
+@dataclass
+class _Stage:
+    """A mark's reference window for one kind of match (every frame, or re-acquisition)."""
+
+    origin: np.ndarray
+    crop: np.ndarray
+    correlator: Correlator | None = None
 
 
 def _axis_angle(axis: tuple[float, float]) -> float:
@@ -286,9 +305,29 @@ class MarkTracker:
         last = self.positions[mark.indices]
         dt = None if mark.last_time is None else time_s - mark.last_time
         predicted = last + (mark.velocity * dt if dt else 0.0)
-        blur = float(np.hypot(*mark.velocity)) * exposure_s
-        if mark.first_reference and abs(blur - mark.blur_applied) > s.blur_tolerance_px:
-            mark.prepare(blur)
+        velocity = mark.velocity
+        for _ in range(2):
+            blur = float(np.hypot(*velocity)) * exposure_s
+            if mark.first_reference and abs(blur - mark.blur_applied) > s.blur_tolerance_px:
+                mark.prepare(blur)
+            result = self._match(mark, image, predicted)
+            positions, _, _, _, mark_lost = result
+            if mark_lost or not dt or not mark.first_reference:
+                break
+            velocity = (positions.mean(axis=0) - last.mean(axis=0)) / dt
+            if abs(float(np.hypot(*velocity)) * exposure_s - mark.blur_applied) <= (
+                s.blur_tolerance_px
+            ):
+                break
+        if dt and not mark_lost:
+            mark.velocity = (positions.mean(axis=0) - last.mean(axis=0)) / dt
+        mark.last_time = time_s
+        return result
+
+    def _match(self, mark: _Mark, image: np.ndarray, predicted: np.ndarray):
+        """Match a mark's points near their predicted positions: every-frame stage, then
+        re-acquisition for the points that failed."""
+        s = self.settings
         gradient_guess = mark.gradient
         m = mark.indices.size
         out_pos = predicted.copy()
@@ -296,18 +335,25 @@ class MarkTracker:
         out_zncc = np.full(m, np.nan)
         out_grad = np.tile(gradient_guess, (m, 1))
         pending = np.ones(m, dtype=bool)
-        for name, flag in (("track", TrackStatus.TRACKED), ("reacquire", TrackStatus.REACQUIRED)):
-            correlator = mark.correlators[name]
-            shift = np.round((predicted - mark.reference_positions).mean(axis=0)).astype(int)
-            origin = mark.origin + shift
-            h, w = mark.reference_crop.shape
-            crop = _crop(image, origin, w, h)
+        shift = np.round((predicted - mark.reference_positions).mean(axis=0)).astype(np.int64)
+        for name, flag, radius in (
+            ("track", TrackStatus.TRACKED, s.search_radius_px),
+            ("reacquire", TrackStatus.REACQUIRED, s.reacquire_radius_px),
+        ):
+            stage = mark.stages[name]
+            h, w = stage.crop.shape
+            crop = _crop(image, stage.origin + shift, w, h)
             guess = np.empty((m, 6))
             guess[:, :2] = predicted - mark.reference_positions - shift
             guess[:, 2:] = gradient_guess
-            correlator.prewarps = [tuple(gradient_guess)]
-            result = correlator.measure(crop, guess).refinement
-            good = (result.status == PointStatus.CONVERGED) & (result.zncc >= s.min_zncc)
+            stage.correlator.prewarps = [tuple(gradient_guess)]
+            result = stage.correlator.measure(crop, guess).refinement
+            moved = np.hypot(result.u - guess[:, 0], result.v - guess[:, 1])
+            good = (
+                (result.status == PointStatus.CONVERGED)
+                & (result.zncc >= s.min_zncc)
+                & (moved <= radius + 1.0)
+            )
             take = pending & good
             out_pos[take, 0] = mark.reference_positions[take, 0] + result.u[take] + shift[0]
             out_pos[take, 1] = mark.reference_positions[take, 1] + result.v[take] + shift[1]
@@ -324,9 +370,6 @@ class MarkTracker:
             out_pos = predicted
         elif pending.any():
             out_pos[pending] = self._estimate(mark, out_pos, measured, out_grad)
-        if dt and not mark_lost:
-            mark.velocity = (out_pos.mean(axis=0) - last.mean(axis=0)) / dt
-        mark.last_time = time_s
         return out_pos, out_status, out_zncc, out_grad, mark_lost
 
     def _estimate(

@@ -9,9 +9,9 @@ verdicts). Targets:
   long exposure giving >= 5 px of blur at the moving mark: strain error
   <= max(0.5 % of reading, 1.5 um / L0) throughout (ISO 9513 class 0.5 bias), no lost points;
 * metal (ISO 6892-1 flat, 10 mm/min): elongation error <= 1.5 um below 300 um of elongation;
-* throughput: >= 200 frames/s tracked with 10 points on 1 MP frames; the tracking thread's
-  own time is measured (the simulated camera's rendering runs on the acquisition thread and
-  is excluded).
+* throughput: >= 200 frames/s tracked with 10 points on 1 MP frames. The simulated camera
+  first renders the frames of a metal test into memory (its time reported apart), then the
+  tracker and the gauges measure them back to back, alone on the machine.
 
 `--quick` shortens the rubber tests to 100 % and the metal test to 0.8 % strain.
 """
@@ -23,6 +23,8 @@ import json
 import time
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from appliance.config import Config
 from appliance.runner import run_test
@@ -56,7 +58,7 @@ def cases(quick: bool) -> list[tuple[str, Config, str]]:
             _config(
                 "rubber",
                 run={"until_strain": rubber_end, "until_break": True},
-                camera={"exposure_us": 100000.0, "frame_rate_hz": 9.0},
+                camera={"exposure_us": 130000.0, "frame_rate_hz": 7.0},
             ),
             "class 0.5 bias throughout, no lost points",
         ),
@@ -65,17 +67,55 @@ def cases(quick: bool) -> list[tuple[str, Config, str]]:
             _config("metal", run={"until_strain": metal_end, "until_break": False}),
             "elongation error <= 1.5 um below 300 um",
         ),
-        (
-            "throughput, 1 MP, 10 points",
-            _config(
-                "metal",
-                sim={"sensor_width_px": 1024, "sensor_height_px": 1024},
-                gauge={"points_per_mark": 5},
-                run={"until_strain": 0.004, "until_break": False},
-            ),
-            ">= 200 frames/s tracked",
-        ),
     ]
+
+
+def throughput(frames: int = 200) -> dict[str, Any]:
+    """Tracking rate with 10 points on 1 MP frames of a simulated metal test, rendering apart."""
+    from appliance.gauges import Calibration, StrainGauges, place_marks
+    from appliance.sim.world import PRESETS, SimWorld
+    from appliance.tracking import MarkTracker, TrackerSettings
+    from hal.camera.base import CameraSettings, TriggerInfo, TriggerMode
+
+    world = SimWorld(PRESETS["metal"], sensor_size=(1024, 1024), end_strain=0.01)
+    camera = world.camera
+    camera.open()
+    camera.configure(CameraSettings(exposure_us=2000.0))
+    camera.prepare(TriggerInfo(mode=TriggerMode.INTERNAL, rate_hz=20.0, frames=frames + 1))
+    camera.arm()
+    world.machine.start(world.speed_mm_min, 0.0)
+    started = time.perf_counter()
+    images = [camera.fetch(1.0) for _ in range(frames + 1)]
+    render_s = time.perf_counter() - started
+    calibration = Calibration(world.optics.scale_mm_per_px)
+    points, layout = place_marks(
+        world.specimen_centre_px,
+        world.gauge_length_mm,
+        calibration,
+        mark_width_px=32.0,
+        points_per_mark=5,
+        along_axis=True,
+    )
+    tracker = MarkTracker(
+        images[0].image, points, [layout.axial.first, layout.axial.second], TrackerSettings()
+    )
+    gauges = StrainGauges(layout.axial, points, calibration)
+    per_frame = []
+    for frame in images[1:]:
+        t0 = time.perf_counter()
+        tracked = tracker.track(frame.image, frame.timestamp_ns * 1e-9, frame.exposure_us * 1e-6)
+        gauges.read(tracked.positions)
+        per_frame.append(time.perf_counter() - t0)
+    per_frame_ms = np.array(per_frame) * 1e3
+    return {
+        "frames": frames,
+        "points": int(len(points)),
+        "frame_size": "1024x1024",
+        "tracking_ms_median": float(np.median(per_frame_ms)),
+        "tracking_ms_p99": float(np.percentile(per_frame_ms, 99)),
+        "tracking_fps": float(frames / (per_frame_ms.sum() * 1e-3)),
+        "render_ms_per_frame": render_s / (frames + 1) * 1e3,
+    }
 
 
 def _verdict(name: str, summary: dict[str, Any]) -> str:
@@ -85,7 +125,7 @@ def _verdict(name: str, summary: dict[str, Any]) -> str:
         worst = summary["max_elongation_error_um_below_300um"]
         met = worst is not None and worst <= CLASS_05_ABSOLUTE_UM
     else:
-        met = (summary["tracking_fps"] or 0) >= 200
+        raise ValueError(f"no target for case {name!r}")
     return "met" if met else "missed"
 
 
@@ -96,6 +136,7 @@ KEYS = (
     "exposure_us",
     "frame_rate_hz",
     "blur_px_at_crosshead_speed",
+    "max_blur_px_at_marks",
     "final_strain",
     "true_final_strain",
     "max_abs_strain_error",
@@ -123,9 +164,15 @@ def run_simulated_benchmark(out: Path, *, quick: bool = False) -> int:
         verdict = _verdict(name, summary)
         results.append({"case": name, "target": target, "verdict": verdict, **summary})
         print(f"{name}: {verdict} ({summary['wall_s']:.0f} s)", flush=True)
-    (out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
-    (out / "report.md").write_text(_report(results, quick))
+    rate = throughput(60 if quick else 200)
+    rate["verdict"] = "met" if rate["tracking_fps"] >= 200 else "missed"
+    print(f"throughput, 1 MP, 10 points: {rate['verdict']}", flush=True)
+    (out / "results.json").write_text(
+        json.dumps({"tests": results, "throughput": rate}, indent=2) + "\n"
+    )
+    (out / "report.md").write_text(_report(results, rate, quick))
     print(_table(results))
+    print(_throughput_table(rate))
     return 0
 
 
@@ -149,7 +196,12 @@ def _table(results: list[dict[str, Any]]) -> str:
     return "\n".join([header, rule, *rows])
 
 
-def _report(results: list[dict[str, Any]], quick: bool) -> str:
+def _throughput_table(rate: dict[str, Any]) -> str:
+    rows = [f"| {k} | {_cell(v)} |" for k, v in rate.items()]
+    return "\n".join(["| throughput (target >= 200 frames/s) | |", "|---|---|", *rows])
+
+
+def _report(results: list[dict[str, Any]], rate: dict[str, Any], quick: bool) -> str:
     mode = "quick (shortened tests)" if quick else "full"
     return (
         "# Simulated tensile tests against ground truth\n\n"
@@ -157,5 +209,7 @@ def _report(results: list[dict[str, Any]], quick: bool) -> str:
         "Every case is a whole simulated test; errors are against the simulator's ground truth "
         "of the same material points. Per-sample series are in each case's strain.csv.\n\n"
         + _table(results)
+        + "\n\n"
+        + _throughput_table(rate)
         + "\n"
     )

@@ -24,7 +24,7 @@ def test_empty_file_gives_the_defaults_and_values_are_typed():
         ("[camera]\nexposure_us = 'fast'\n", "[camera] exposure_us: must be a number"),
         ("[tracking]\nsubset_px = 40\n", "[tracking] subset_px: must be odd, got 40"),
         ("[tracking]\nsubset_px = 41.0\n", "[tracking] subset_px: must be an integer"),
-        ("[tracking]\nsearch = 'sift'\n", "[tracking] search: must be one of zncc, lpq"),
+        ("[tracking]\nsearch = 'sift'\n", "[tracking] search: must be one of none, zncc, lpq"),
         ("[run]\nuntil_break = 1\n", "[run] until_break: must be true or false"),
         ("[run]\nspeed_mm_min = nan\n", "[run] speed_mm_min: must be finite"),
         ("camera = 3\n", "run.toml: [camera]: must be a table"),
