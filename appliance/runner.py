@@ -108,7 +108,7 @@ def exposure_for(config: Config, optics: Optics, speed_mm_min: float) -> Exposur
             f"{period_s * 1e6:g} us"
         )
     blur = motion_blur_length(optics, speed_mm_min, exposure_s)
-    motion = blur.px / exposure_s * period_s if exposure_s > 0 else 0.0
+    motion = motion_blur_length(optics, speed_mm_min, period_s).px
     return dataclasses.replace(
         plan,
         exposure_s=exposure_s,
@@ -165,10 +165,10 @@ def run_test(
         raise InputError(
             "run: only the simulated devices are available in this version (use --sim)"
         )
-    from appliance.sim.world import SimWorld
+    from appliance.sim.world import PRESETS, SimWorld
 
-    world = SimWorld.from_config(config)
-    optics = _optics(config, world.optics)
+    optics = _optics(config, PRESETS[config.sim.material].optics)
+    world = SimWorld.from_config(config, optics)
     speed = world.speed_mm_min
     plan = exposure_for(config, optics, speed)
     calibration = Calibration.from_optics(optics.pixel_size_um, optics.magnification)
@@ -225,20 +225,9 @@ def run_test(
         return tracker, gauges
 
     records: list[SampleRecord] = []
-    truth_rows: dict[int, dict[str, float]] = {}
-
-    def truth_of(sample: StrainSample) -> dict[str, float]:
-        if sample.index not in truth_rows:
-            true_strain, true_elongation = state["truth"].at(sample)
-            truth_rows[sample.index] = {
-                "true_engineering_strain": true_strain,
-                "true_elongation_mm": true_elongation,
-                "strain_error": sample.reading.engineering_strain - true_strain,
-            }
-        return truth_rows[sample.index]
 
     def record(sample: StrainSample) -> None:
-        truth = truth_of(sample)
+        true_strain, true_elongation = state["truth"].at(sample)
         records.append(
             SampleRecord(
                 strain=sample.reading.engineering_strain,
@@ -246,25 +235,31 @@ def run_test(
                 valid=sample.data_valid,
                 points_lost=int((sample.status == TrackStatus.LOST).sum()),
                 reference_updates=sample.reference_updates,
-                true_strain=truth["true_engineering_strain"],
-                true_elongation_mm=truth["true_elongation_mm"],
+                true_strain=true_strain,
+                true_elongation_mm=true_elongation,
             )
         )
-        truth_rows.pop(sample.index, None)
         state["last_time_s"] = sample.time_s
         if sample.data_valid:
             blur = state["truth"].blur_px(sample)
             state["max_blur_px"] = max(state.get("max_blur_px", 0.0), blur)
 
-    sinks: list[Callable[[StrainSample], None]] = []
+    def truth_columns(sample: StrainSample) -> dict[str, float]:
+        measured = records[-1]
+        return {
+            "true_engineering_strain": measured.true_strain,
+            "true_elongation_mm": measured.true_elongation_mm,
+            "strain_error": measured.strain - measured.true_strain,
+        }
+
+    sinks: list[Callable[[StrainSample], None]] = [record]
     writer = None
     csv_path = summary_path = None
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
         csv_path = out_dir / "strain.csv"
-        writer = StrainCsvWriter(csv_path, TRUTH_COLUMNS, truth_of)
+        writer = StrainCsvWriter(csv_path, TRUTH_COLUMNS, truth_columns)
         sinks.append(writer)
-    sinks.append(record)
     bar = _Progress(progress) if progress is not None else None
     if bar is not None:
         sinks.append(bar)

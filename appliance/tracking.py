@@ -259,12 +259,10 @@ class MarkTracker:
             raise ValueError("every point must belong to exactly one mark")
         self.n = points.shape[0]
         self.positions = points.copy()
-        self.previous_positions = points.copy()
         self.reference_updates = 0
         self._marks = [_Mark(np.asarray(mark, dtype=np.int64), self.settings) for mark in marks]
-        image = np.asarray(reference, dtype=np.float64)
         for mark in self._marks:
-            mark.set_reference(image, points[mark.indices])
+            mark.set_reference(reference, points[mark.indices])
 
     @property
     def subsets(self) -> list[int]:
@@ -292,11 +290,10 @@ class MarkTracker:
             positions[idx], status[idx], zncc[idx], gradients[idx] = result[:4]
             if result[4]:
                 lost_marks += 1
-            elif self._needs_update(mark, status[idx], zncc[idx], gradients[idx]):
-                self._update_reference(mark, image, positions[idx], gradients[idx], status[idx])
+            elif self._needs_update(status[idx], zncc[idx], gradients[idx]):
+                self._update_reference(mark, image, positions[idx])
                 updates += 1
         self.reference_updates += updates
-        self.previous_positions = self.positions
         self.positions = positions
         return TrackedFrame(positions, status, zncc, gradients, updates, lost_marks)
 
@@ -311,16 +308,19 @@ class MarkTracker:
             if mark.first_reference and abs(blur - mark.blur_applied) > s.blur_tolerance_px:
                 mark.prepare(blur)
             result = self._match(mark, image, predicted)
-            positions, _, _, _, mark_lost = result
-            if mark_lost or not dt or not mark.first_reference:
+            positions, status, _, gradients, mark_lost = result
+            if mark_lost or not dt:
                 break
             velocity = (positions.mean(axis=0) - last.mean(axis=0)) / dt
-            if abs(float(np.hypot(*velocity)) * exposure_s - mark.blur_applied) <= (
+            blur_now = float(np.hypot(*velocity)) * exposure_s
+            if not mark.first_reference or abs(blur_now - mark.blur_applied) <= (
                 s.blur_tolerance_px
             ):
                 break
-        if dt and not mark_lost:
-            mark.velocity = (positions.mean(axis=0) - last.mean(axis=0)) / dt
+        if not mark_lost:
+            mark.gradient = gradients[status != TrackStatus.LOST].mean(axis=0)
+            if dt:
+                mark.velocity = velocity
         mark.last_time = time_s
         return result
 
@@ -383,13 +383,9 @@ class MarkTracker:
         anchor_now = positions[measured].mean(axis=0)
         return anchor_now + (ref[~measured] - anchor_ref) @ f.T
 
-    def _needs_update(
-        self, mark: _Mark, status: np.ndarray, zncc: np.ndarray, gradients: np.ndarray
-    ) -> bool:
+    def _needs_update(self, status: np.ndarray, zncc: np.ndarray, gradients: np.ndarray) -> bool:
         s = self.settings
-        measured = status != TrackStatus.LOST
-        mark.gradient = gradients[measured].mean(axis=0)
-        if not measured.all():
+        if (status == TrackStatus.LOST).any():
             return False
         if (status == TrackStatus.REACQUIRED).any():
             return True
@@ -397,16 +393,9 @@ class MarkTracker:
             return True
         return float(np.abs(gradients).max()) > s.update_deformation
 
-    def _update_reference(
-        self,
-        mark: _Mark,
-        image: np.ndarray,
-        positions: np.ndarray,
-        gradients: np.ndarray,
-        status: np.ndarray,
-    ) -> None:
+    def _update_reference(self, mark: _Mark, image: np.ndarray, positions: np.ndarray) -> None:
         s = self.settings
-        g = gradients[status != TrackStatus.LOST].mean(axis=0)
+        g = mark.gradient
         step = np.array([[1 + g[0], g[1]], [g[2], 1 + g[3]]])
         mark.deformation_total = step @ mark.deformation_total
         across = np.array([-s.axis[1], s.axis[0]])
@@ -414,4 +403,4 @@ class MarkTracker:
         mark.subset = _odd_at_most(s.subset_px * min(1.0, lateral), s.min_subset_px, s.subset_px)
         mark.first_reference = False
         mark.gradient = np.zeros(4)
-        mark.set_reference(np.asarray(image, dtype=np.float64), positions)
+        mark.set_reference(image, positions)

@@ -161,15 +161,12 @@ class SimWorld:
         self.frame = frame_from_url("sim://frame", machine=self.machine, clock=self.clock)
 
     @classmethod
-    def from_config(cls, config: Config) -> SimWorld:
-        """The world of a configuration's [sim] table and the related keys."""
+    def from_config(cls, config: Config, optics: Optics) -> SimWorld:
+        """The world of a configuration's [sim] table and the related keys, seen through
+        `optics` (the configured ones, or the preset's)."""
         preset = PRESETS[config.sim.material]
         width = config.sim.sensor_width_px or preset.sensor_size[0]
         height = config.sim.sensor_height_px or preset.sensor_size[1]
-        o = config.optics
-        optics = None
-        if o.focal_length_mm and o.object_distance_mm and o.pixel_size_um:
-            optics = Optics(o.focal_length_mm, o.object_distance_mm, o.pixel_size_um)
         return cls(
             preset,
             optics=optics,
