@@ -6,11 +6,13 @@
   When the frames queue is full it drops the frame and counts it (a real camera cannot wait),
   unless the loop is told to block (a simulation running as fast as possible, whose clock
   only moves when a frame is fetched).
-* The tracking thread measures the marks (`appliance.tracking.MarkTracker`), turns positions
-  into strain (`appliance.gauges.StrainGauges`), checks the stop criteria and break
-  detection, and hands a `StrainSample` on. Nothing else runs between a frame and its strain.
-* The publishing thread calls the sinks (strain file, progress display, and later recording,
-  viewer and Modbus). Its queue never drops: a sample is published or the loop fails.
+* The tracking thread measures the frame (`appliance.measurement.FrameMeasurer`: marks,
+  strain, validity, stop criteria and break detection), calls the *immediate* sinks (the
+  Modbus registers and the watchdog, which must see the strain of this frame before the next
+  one is measured; they must be fast and must not block) and hands the `StrainSample` on.
+* The publishing thread calls the sinks (strain file, recording, viewer, progress display).
+  Its queue never drops: a sample is published or the loop fails; a sink that cannot keep up
+  slows the loop until the frames queue drops frames, which are counted.
 
 Timestamps come from the device (`Frame.timestamp_ns`). Latency is wall time from the moment
 the camera delivers a frame to the moment its strain sample is complete, so it measures this
@@ -24,93 +26,20 @@ before an abort or a fault are kept and published.
 
 from __future__ import annotations
 
-import math
 import queue
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
-
-from appliance.gauges import StrainGauges, StrainReading
+from appliance.gauges import StrainGauges
+from appliance.measurement import BreakDetection, FrameMeasurer, StopCriteria, StrainSample
 from appliance.run_state import RunEvent, RunState, RunStateMachine
 from appliance.tracking import MarkTracker
 from hal.camera.base import Camera, Frame
 from hal.errors import HardwareError
-from hal.frame.base import FrameState, TensileFrame
-
-
-@dataclass(frozen=True)
-class StrainSample:
-    """Everything measured on one frame.
-
-    Attributes:
-        index: sample number in this run (0 = first frame after the reference).
-        frame_id: the camera's frame counter.
-        timestamp_ns: device time of the start of exposure, ns.
-        time_s: seconds since the reference frame (device clock).
-        exposure_us: exposure of the frame, us.
-        reading: strains and elongation.
-        positions: (n, 2) tracked positions, px.
-        status: (n,) `appliance.tracking.TrackStatus`.
-        zncc: (n,) ZNCC of each point.
-        data_valid: every axial gauge mark had at least one measured point, and the force
-            has not fallen as after a break (a frame of a broken specimen is not a strain).
-        reference_updates: references replaced after this frame.
-        machine: the controller's state read with the frame (None if unavailable).
-        latency_s: wall time from frame delivery to this sample.
-        metadata: the frame's metadata (a simulator's ground truth, for instance).
-    """
-
-    index: int
-    frame_id: int
-    timestamp_ns: int
-    time_s: float
-    exposure_us: float
-    reading: StrainReading
-    positions: np.ndarray
-    status: np.ndarray
-    zncc: np.ndarray
-    data_valid: bool
-    reference_updates: int
-    machine: FrameState | None
-    latency_s: float
-    metadata: Mapping[str, Any] = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class StopCriteria:
-    """When a run ends by itself.
-
-    Attributes:
-        until_strain: stop when the engineering strain reaches this; None = no limit.
-        until_break: stop when a break is detected.
-        max_time_s: stop after this much device time; None = no limit.
-        max_frames: stop after this many samples; None = no limit.
-    """
-
-    until_strain: float | None = None
-    until_break: bool = True
-    max_time_s: float | None = None
-    max_frames: int | None = None
-
-
-@dataclass(frozen=True)
-class BreakDetection:
-    """How a break is recognised.
-
-    A break is declared when the force has fallen below `force_drop_fraction` of its maximum
-    (once the maximum exceeded `min_peak_force_n`), or when a gauge mark has had no measured
-    point for `lost_mark_frames` consecutive frames after the strain passed `min_strain`
-    (the marks separating as the specimen snaps).
-    """
-
-    force_drop_fraction: float = 0.2
-    min_peak_force_n: float = 1.0
-    lost_mark_frames: int = 3
-    min_strain: float = 0.001
+from hal.frame.base import TensileFrame
 
 
 @dataclass
@@ -150,6 +79,8 @@ class MeasurementLoop:
         setup: called with the reference frame; returns the tracker and the strain gauges
             (this is where the marks are placed).
         sinks: called in order with every sample, on the publishing thread.
+        immediate_sinks: called in order with every sample on the tracking thread, as soon
+            as it is measured (fast, non-blocking work only).
         state: the run state machine (IDLE at the start).
         block_when_full: wait for room in the frames queue instead of dropping frames.
         queue_size: capacity of each queue.
@@ -166,6 +97,7 @@ class MeasurementLoop:
         setup: Callable[[Frame], tuple[MarkTracker, StrainGauges]],
         *,
         sinks: Sequence[Sink] = (),
+        immediate_sinks: Sequence[Sink] = (),
         state: RunStateMachine | None = None,
         block_when_full: bool = False,
         queue_size: int = 8,
@@ -178,6 +110,7 @@ class MeasurementLoop:
         self.frame = frame
         self.setup = setup
         self.sinks = list(sinks)
+        self.immediate_sinks = list(immediate_sinks)
         self.state = state or RunStateMachine()
         self.block_when_full = block_when_full
         self.start_speed_mm_min = start_speed_mm_min
@@ -319,11 +252,13 @@ class MeasurementLoop:
             self._put(self._frames, _END, force=True)
 
     def _track(self, tracker: MarkTracker, gauges: StrainGauges, criteria: StopCriteria) -> None:
-        detection = self.break_detection
-        axial_marks = (gauges.axial.first, gauges.axial.second)
-        peak_force = 0.0
-        lost_run = 0
-        index = 0
+        measurer = FrameMeasurer(
+            tracker,
+            gauges,
+            self._reference_time_ns,
+            break_detection=self.break_detection,
+            wall=self._wall,
+        )
         try:
             while True:
                 item = self._frames.get()
@@ -333,63 +268,16 @@ class MeasurementLoop:
                     continue
                 frame, machine, delivered = item
                 started = self._wall()
-                time_s = (frame.timestamp_ns - self._reference_time_ns) * 1e-9
-                tracked = tracker.track(frame.image, time_s, frame.exposure_us * 1e-6)
-                reading = gauges.read(tracked.positions)
-                measured = tracked.measured
-                marks_seen = all(measured[list(mark)].any() for mark in axial_marks)
-                if machine is not None:
-                    peak_force = max(peak_force, machine.force_n)
-                force_broken = (
-                    machine is not None
-                    and peak_force >= detection.min_peak_force_n
-                    and machine.force_n < detection.force_drop_fraction * peak_force
-                )
-                valid = marks_seen and not force_broken
-                now = self._wall()
-                self._result.tracking_time_s += now - started
-                sample = StrainSample(
-                    index=index,
-                    frame_id=frame.frame_id,
-                    timestamp_ns=frame.timestamp_ns,
-                    time_s=time_s,
-                    exposure_us=frame.exposure_us,
-                    reading=reading,
-                    positions=tracked.positions,
-                    status=tracked.status,
-                    zncc=tracked.zncc,
-                    data_valid=valid,
-                    reference_updates=tracked.reference_updates,
-                    machine=machine,
-                    latency_s=now - delivered,
-                    metadata=frame.metadata,
-                )
-                index += 1
-                self._result.frames_processed = index
+                sample = measurer.measure(frame, machine, delivered)
+                for sink in self.immediate_sinks:
+                    sink(sample)
+                self._result.tracking_time_s += self._wall() - started
+                self._result.frames_processed = measurer.samples
                 self._result.latencies_s.append(sample.latency_s)
                 self._publish_sample(sample)
-                strain = reading.engineering_strain
-                lost_run = 0 if marks_seen else lost_run + 1
-                if criteria.until_break and force_broken:
-                    self._finish(
-                        "break",
-                        f"break: force fell to {machine.force_n:.1f} N "
-                        f"from a peak of {peak_force:.1f} N",
-                    )
-                elif (
-                    criteria.until_break
-                    and lost_run >= detection.lost_mark_frames
-                    and (math.isnan(strain) or strain >= detection.min_strain)
-                ):
-                    self._finish("break", f"break: a gauge mark lost for {lost_run} frames")
-                elif criteria.until_strain is not None and strain >= criteria.until_strain:
-                    self._finish(
-                        "completed", f"strain {strain:.6g} reached {criteria.until_strain:g}"
-                    )
-                elif criteria.max_time_s is not None and time_s >= criteria.max_time_s:
-                    self._finish("completed", f"time limit {criteria.max_time_s:g} s reached")
-                elif criteria.max_frames is not None and index >= criteria.max_frames:
-                    self._finish("completed", f"frame limit {criteria.max_frames} reached")
+                ending = measurer.ending(criteria)
+                if ending is not None:
+                    self._finish(*ending)
         finally:
             self._stop.set()
             self._publish_sample(_END)

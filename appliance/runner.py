@@ -30,7 +30,8 @@ import numpy as np
 from appliance.config import Config
 from appliance.errors import InputError
 from appliance.gauges import Calibration, StrainGauges, place_marks
-from appliance.loop import MeasurementLoop, StopCriteria, StrainSample
+from appliance.loop import MeasurementLoop
+from appliance.measurement import StopCriteria, StrainSample
 from appliance.optics import Optics
 from appliance.planner import ExposurePlan, motion_blur_length, plan_exposure
 from appliance.strain_file import StrainCsvWriter

@@ -15,7 +15,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from appliance.loop import StrainSample
+from appliance.measurement import StrainSample
 from appliance.tracking import TrackStatus
 
 COLUMNS: tuple[str, ...] = (

@@ -41,6 +41,7 @@ the image y axis); "across" is perpendicular to it.
 from __future__ import annotations
 
 import enum
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -125,6 +126,32 @@ class TrackerSettings:
 
 
 @dataclass(frozen=True)
+class ReadRegion:
+    """A rectangle of an image, in pixels: columns x .. x + width - 1, rows y .. y + height - 1."""
+
+    x: int
+    y: int
+    width: int
+    height: int
+
+    def union(self, other: ReadRegion) -> ReadRegion:
+        """The smallest rectangle holding both."""
+        x0, y0 = min(self.x, other.x), min(self.y, other.y)
+        x1 = max(self.x + self.width, other.x + other.width)
+        y1 = max(self.y + self.height, other.y + other.height)
+        return ReadRegion(x0, y0, x1 - x0, y1 - y0)
+
+    def contains(self, other: ReadRegion) -> bool:
+        """Whether `other` lies wholly inside this rectangle."""
+        return (
+            self.x <= other.x
+            and self.y <= other.y
+            and other.x + other.width <= self.x + self.width
+            and other.y + other.height <= self.y + self.height
+        )
+
+
+@dataclass(frozen=True)
 class TrackedFrame:
     """Result of one frame for all points (n of them).
 
@@ -135,6 +162,10 @@ class TrackedFrame:
         gradients: (n, 4) (ux, uy, vx, vy) relative to the mark's current reference.
         reference_updates: marks whose reference was replaced after this frame.
         marks_lost: marks with no measured point in this frame.
+        read_regions: for every mark, the bounding rectangle of every pixel of this image the
+            tracker read (its windows, and the new reference after an update). These pixels
+            alone determine the result: a copy of the image that holds them and anything
+            else elsewhere tracks to the same numbers.
     """
 
     positions: np.ndarray
@@ -143,6 +174,7 @@ class TrackedFrame:
     gradients: np.ndarray
     reference_updates: int
     marks_lost: int
+    read_regions: tuple[ReadRegion, ...]
 
     @property
     def measured(self) -> np.ndarray:
@@ -175,7 +207,7 @@ class _Mark:
         s = self.settings
         self.reference_positions = positions.copy()
         lo, hi = positions.min(axis=0), positions.max(axis=0)
-        self.stages = {}
+        self.stages: dict[str, _Stage] = {}
         for name, radius in (
             ("track", s.search_radius_px),
             ("reacquire", s.reacquire_radius_px),
@@ -185,6 +217,14 @@ class _Mark:
             width, height = (np.ceil(hi).astype(np.int64) + border + 1 - origin).tolist()
             self.stages[name] = _Stage(origin, _crop(image, origin, width, height))
         self.prepare(0.0)
+
+    def reference_region(self, shape: tuple[int, ...]) -> ReadRegion:
+        """The pixels of an image of `shape` that `set_reference` read."""
+        regions = [
+            _crop_region(shape, stage.origin, stage.crop.shape[1], stage.crop.shape[0])
+            for stage in self.stages.values()
+        ]
+        return functools.reduce(ReadRegion.union, regions)
 
     def prepare(self, blur_px: float) -> None:
         """(Re)build the correlators on the reference crops, blurred by `blur_px` along the axis."""
@@ -217,6 +257,16 @@ class _Stage:
 
 def _axis_angle(axis: tuple[float, float]) -> float:
     return math.degrees(math.atan2(axis[1], axis[0]))
+
+
+def _crop_region(shape: tuple[int, ...], origin: np.ndarray, width: int, height: int) -> ReadRegion:
+    """The pixels of an image of `shape` that `_crop` reads for a window at `origin`."""
+    h, w = shape
+    x0 = min(max(int(origin[0]), 0), w - 1)
+    y0 = min(max(int(origin[1]), 0), h - 1)
+    x1 = min(max(int(origin[0]) + width - 1, 0), w - 1)
+    y1 = min(max(int(origin[1]) + height - 1, 0), h - 1)
+    return ReadRegion(x0, y0, x1 - x0 + 1, y1 - y0 + 1)
 
 
 def _crop(image: np.ndarray, origin: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -284,20 +334,31 @@ class MarkTracker:
         gradients = np.zeros((self.n, 4))
         updates = 0
         lost_marks = 0
+        regions = []
         for mark in self._marks:
-            result = self._track_mark(mark, image, time_s, exposure_s)
+            reads: list[ReadRegion] = []
+            result = self._track_mark(mark, image, time_s, exposure_s, reads)
             idx = mark.indices
             positions[idx], status[idx], zncc[idx], gradients[idx] = result[:4]
             if result[4]:
                 lost_marks += 1
             elif self._needs_update(status[idx], zncc[idx], gradients[idx]):
                 self._update_reference(mark, image, positions[idx])
+                reads.append(mark.reference_region(image.shape))
                 updates += 1
+            regions.append(functools.reduce(ReadRegion.union, reads))
         self.reference_updates += updates
         self.positions = positions
-        return TrackedFrame(positions, status, zncc, gradients, updates, lost_marks)
+        return TrackedFrame(positions, status, zncc, gradients, updates, lost_marks, tuple(regions))
 
-    def _track_mark(self, mark: _Mark, image: np.ndarray, time_s: float, exposure_s: float):
+    def _track_mark(
+        self,
+        mark: _Mark,
+        image: np.ndarray,
+        time_s: float,
+        exposure_s: float,
+        reads: list[ReadRegion],
+    ):
         s = self.settings
         last = self.positions[mark.indices]
         dt = None if mark.last_time is None else time_s - mark.last_time
@@ -307,7 +368,7 @@ class MarkTracker:
             blur = float(np.hypot(*velocity)) * exposure_s
             if mark.first_reference and abs(blur - mark.blur_applied) > s.blur_tolerance_px:
                 mark.prepare(blur)
-            result = self._match(mark, image, predicted)
+            result = self._match(mark, image, predicted, reads)
             positions, status, _, gradients, mark_lost = result
             if mark_lost or not dt:
                 break
@@ -324,9 +385,12 @@ class MarkTracker:
         mark.last_time = time_s
         return result
 
-    def _match(self, mark: _Mark, image: np.ndarray, predicted: np.ndarray):
+    def _match(
+        self, mark: _Mark, image: np.ndarray, predicted: np.ndarray, reads: list[ReadRegion]
+    ):
         """Match a mark's points near their predicted positions: every-frame stage, then
-        re-acquisition for the points that failed."""
+        re-acquisition for the points that failed. The regions of `image` read are appended
+        to `reads`."""
         s = self.settings
         gradient_guess = mark.gradient
         m = mark.indices.size
@@ -343,6 +407,7 @@ class MarkTracker:
             stage = mark.stages[name]
             h, w = stage.crop.shape
             crop = _crop(image, stage.origin + shift, w, h)
+            reads.append(_crop_region(image.shape, stage.origin + shift, w, h))
             guess = np.empty((m, 6))
             guess[:, :2] = predicted - mark.reference_positions - shift
             guess[:, 2:] = gradient_guess

@@ -31,7 +31,7 @@ import numpy as np
 
 from appliance.config import Config
 from appliance.gauges import Gauge
-from appliance.loop import StrainSample
+from appliance.measurement import StrainSample
 from appliance.optics import Optics
 from appliance.sim.bar import BarModel
 from appliance.sim.crosshead import Crosshead

@@ -10,7 +10,8 @@ import pytest
 
 from appliance.dic import synthetic
 from appliance.gauges import Calibration, Gauge, StrainGauges
-from appliance.loop import MeasurementLoop, StopCriteria
+from appliance.loop import MeasurementLoop
+from appliance.measurement import StopCriteria
 from appliance.run_state import RunEvent, RunState
 from appliance.tracking import MarkTracker, TrackerSettings
 from hal.camera.base import Region, TriggerInfo, TriggerMode

@@ -1,0 +1,219 @@
+"""One frame to one strain sample: tracking, strain, validity and the end of a test.
+
+`FrameMeasurer` is the whole measurement of a frame, the same code for the live loop
+(`appliance.loop`) and for the replay of a recording (`appliance.replay`), so a replay on the
+recorded pixels reproduces the recorded strain exactly:
+
+1. the marks are tracked (`appliance.tracking.MarkTracker`) at the frame's device time;
+2. their positions become strains (`appliance.gauges.StrainGauges`);
+3. the sample is *valid* when every axial gauge mark had a measured point and the force has
+   not fallen as after a break (a frame of a broken specimen is not a strain);
+4. `ending` says whether the test is over: a break (force drop, or a mark lost for several
+   frames), the strain limit, a time or frame limit.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from appliance.frame_windows import ImageWindow, cut_windows
+from appliance.gauges import StrainGauges, StrainReading
+from appliance.tracking import MarkTracker
+from hal.camera.base import Frame
+from hal.frame.base import FrameState
+
+
+@dataclass(frozen=True)
+class StrainSample:
+    """Everything measured on one frame.
+
+    Attributes:
+        index: sample number in this run (0 = first frame after the reference).
+        frame_id: the camera's frame counter.
+        timestamp_ns: device time of the start of exposure, ns.
+        time_s: seconds since the reference frame (device clock).
+        exposure_us: exposure of the frame, us.
+        reading: strains and elongation.
+        positions: (n, 2) tracked positions, px.
+        status: (n,) `appliance.tracking.TrackStatus`.
+        zncc: (n,) ZNCC of each point.
+        gradients: (n, 4) displacement gradients (ux, uy, vx, vy) of each point relative to
+            its mark's current reference (the first-order shape function).
+        data_valid: every axial gauge mark had at least one measured point, and the force
+            has not fallen as after a break (a frame of a broken specimen is not a strain).
+        reference_updates: references replaced after this frame.
+        machine: the controller's state read with the frame (None if unavailable).
+        latency_s: wall time from frame delivery to this sample.
+        windows: copies of the pixels of the frame the tracker read, one window per mark:
+            enough to measure the frame again to the same numbers.
+        image: the whole frame (shared, not a copy: read it, never write it).
+        metadata: the frame's metadata (a simulator's ground truth, for instance).
+    """
+
+    index: int
+    frame_id: int
+    timestamp_ns: int
+    time_s: float
+    exposure_us: float
+    reading: StrainReading
+    positions: np.ndarray
+    status: np.ndarray
+    zncc: np.ndarray
+    gradients: np.ndarray
+    data_valid: bool
+    reference_updates: int
+    machine: FrameState | None
+    latency_s: float
+    windows: tuple[ImageWindow, ...] = ()
+    image: np.ndarray | None = None
+    metadata: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class StopCriteria:
+    """When a run ends by itself.
+
+    Attributes:
+        until_strain: stop when the engineering strain reaches this; None = no limit.
+        until_break: stop when a break is detected.
+        max_time_s: stop after this much device time; None = no limit.
+        max_frames: stop after this many samples; None = no limit.
+    """
+
+    until_strain: float | None = None
+    until_break: bool = True
+    max_time_s: float | None = None
+    max_frames: int | None = None
+
+
+@dataclass(frozen=True)
+class BreakDetection:
+    """How a break is recognised.
+
+    A break is declared when the force has fallen below `force_drop_fraction` of its maximum
+    (once the maximum exceeded `min_peak_force_n`), or when a gauge mark has had no measured
+    point for `lost_mark_frames` consecutive frames after the strain passed `min_strain`
+    (the marks separating as the specimen snaps).
+    """
+
+    force_drop_fraction: float = 0.2
+    min_peak_force_n: float = 1.0
+    lost_mark_frames: int = 3
+    min_strain: float = 0.001
+
+
+class FrameMeasurer:
+    """Measures the frames of one test in order, from the reference on.
+
+    Args:
+        tracker: the marks' tracker, prepared on the reference frame.
+        gauges: the strain gauges on the tracked points.
+        reference_time_ns: device time of the reference frame, ns.
+        break_detection: how a break is recognised.
+        wall: wall clock, s, for the latency (injected for tests).
+    """
+
+    def __init__(
+        self,
+        tracker: MarkTracker,
+        gauges: StrainGauges,
+        reference_time_ns: int,
+        *,
+        break_detection: BreakDetection | None = None,
+        wall: Callable[[], float] = time.perf_counter,
+    ) -> None:
+        self.tracker = tracker
+        self.gauges = gauges
+        self.reference_time_ns = reference_time_ns
+        self.detection = break_detection or BreakDetection()
+        self._wall = wall
+        self._axial_marks = (list(gauges.axial.first), list(gauges.axial.second))
+        self.samples = 0
+        self.peak_force_n = 0.0
+        self._lost_run = 0
+        self._force_broken = False
+        self._last: StrainSample | None = None
+
+    def measure(
+        self, frame: Frame, machine: FrameState | None, delivered_s: float | None = None
+    ) -> StrainSample:
+        """Measure the next frame; `machine` is the controller's state read with it.
+
+        Args:
+            frame: the frame (its image is read where the marks are).
+            machine: the controller's state, or None.
+            delivered_s: wall time the frame was delivered (for the latency); None = now.
+        """
+        delivered = self._wall() if delivered_s is None else delivered_s
+        time_s = (frame.timestamp_ns - self.reference_time_ns) * 1e-9
+        tracked = self.tracker.track(frame.image, time_s, frame.exposure_us * 1e-6)
+        reading = self.gauges.read(tracked.positions)
+        measured = tracked.measured
+        marks_seen = all(measured[mark].any() for mark in self._axial_marks)
+        detection = self.detection
+        if machine is not None:
+            self.peak_force_n = max(self.peak_force_n, machine.force_n)
+        self._force_broken = (
+            machine is not None
+            and self.peak_force_n >= detection.min_peak_force_n
+            and machine.force_n < detection.force_drop_fraction * self.peak_force_n
+        )
+        self._lost_run = 0 if marks_seen else self._lost_run + 1
+        sample = StrainSample(
+            index=self.samples,
+            frame_id=frame.frame_id,
+            timestamp_ns=frame.timestamp_ns,
+            time_s=time_s,
+            exposure_us=frame.exposure_us,
+            reading=reading,
+            positions=tracked.positions,
+            status=tracked.status,
+            zncc=tracked.zncc,
+            gradients=tracked.gradients,
+            data_valid=marks_seen and not self._force_broken,
+            reference_updates=tracked.reference_updates,
+            machine=machine,
+            latency_s=self._wall() - delivered,
+            windows=cut_windows(np.asarray(frame.image), tracked.read_regions),
+            image=frame.image,
+            metadata=frame.metadata,
+        )
+        self.samples += 1
+        self._last = sample
+        return sample
+
+    def ending(self, criteria: StopCriteria) -> tuple[str, str] | None:
+        """(exit status, reason) when the last measured sample ends the test, else None.
+
+        The exit status is "break" or "completed".
+        """
+        sample = self._last
+        if sample is None:
+            return None
+        detection = self.detection
+        strain = sample.reading.engineering_strain
+        if criteria.until_break and self._force_broken:
+            force = sample.machine.force_n if sample.machine is not None else math.nan
+            return (
+                "break",
+                f"break: force fell to {force:.1f} N from a peak of {self.peak_force_n:.1f} N",
+            )
+        if (
+            criteria.until_break
+            and self._lost_run >= detection.lost_mark_frames
+            and (math.isnan(strain) or strain >= detection.min_strain)
+        ):
+            return "break", f"break: a gauge mark lost for {self._lost_run} frames"
+        if criteria.until_strain is not None and strain >= criteria.until_strain:
+            return "completed", f"strain {strain:.6g} reached {criteria.until_strain:g}"
+        if criteria.max_time_s is not None and sample.time_s >= criteria.max_time_s:
+            return "completed", f"time limit {criteria.max_time_s:g} s reached"
+        if criteria.max_frames is not None and self.samples >= criteria.max_frames:
+            return "completed", f"frame limit {criteria.max_frames} reached"
+        return None
