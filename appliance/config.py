@@ -129,6 +129,81 @@ class SimConfig:
 
 
 @dataclass(frozen=True)
+class RecordConfig:
+    """[record]: the MCAP recording of every test (`appliance.recorder`).
+
+    `path` empty: `run` records only with `--record`, `serve` writes a timestamped file per
+    test into the service's state directory. The tracker's windows of every frame are always
+    recorded (they make the replay exact); full frames at `full_frame_rate_hz` (0 = only the
+    reference). Records wait at most `flush_interval_s` in memory: a chunk is closed and the
+    file flushed (and synced with `fsync`) at least that often, which bounds what a crash can
+    lose. When the disk falls behind by `backlog_mb`, full frames are recorded at a lower rate
+    (the degradation is recorded and reported); every other record is always written.
+    """
+
+    path: str = ""
+    full_frame_rate_hz: float = field(default=2.0, metadata=_range(0.0, 1000.0))
+    flush_interval_s: float = field(default=1.0, metadata=_range(0.01, 60.0))
+    chunk_size_kb: int = field(default=4096, metadata=_range(16, 262144))
+    fsync: bool = True
+    backlog_mb: float = field(default=64.0, metadata=_range(1.0, 16384.0))
+
+
+@dataclass(frozen=True)
+class ModbusConfig:
+    """[modbus]: the strain server for the machine controller (`appliance.modbus_server`).
+
+    `tcp` is "HOST:PORT" to listen on (empty = no TCP server; bind 127.0.0.1 unless the
+    controller is on another host), `rtu_device` a serial device for Modbus RTU (empty = no
+    RTU server); both may run at once with one register map. Floats are 32-bit in `big`
+    word order (ABCD: high word first) or `little` (CDAB). `allow_write_from` lists the
+    client IP addresses whose writes are accepted (empty = any client; RTU has no address
+    and is allowed whenever the list is empty).
+    """
+
+    tcp: str = field(default="", metadata={"address": True})
+    rtu_device: str = ""
+    rtu_baud: int = field(default=115200, metadata=_range(300, 4000000))
+    rtu_parity: str = field(default="N", metadata={"choices": ("N", "E", "O")})
+    rtu_stop_bits: int = field(default=1, metadata=_range(1, 2))
+    unit_id: int = field(default=1, metadata=_range(1, 247))
+    word_order: str = field(default="big", metadata={"choices": ("big", "little")})
+    allow_write_from: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class RerunConfig:
+    """[rerun]: live monitoring in a Rerun viewer (`appliance.viewer`).
+
+    Any of three sinks: `serve` = "HOST:PORT" of a gRPC server remote viewers connect to,
+    `connect` = the URL of a viewer to push to (`rerun+http://HOST:PORT/proxy`), `save` = an
+    .rrd file. Images go at `image_rate_hz`, scaled by `image_scale`; the viewer has a queue
+    of `queue_size` samples and drops (and counts) what does not fit, so it never slows the
+    measurement.
+    """
+
+    serve: str = field(default="", metadata={"address": True})
+    connect: str = ""
+    save: str = ""
+    image_rate_hz: float = field(default=2.0, metadata=_range(0.0, 1000.0))
+    image_scale: float = field(default=0.5, metadata=_range(0.05, 1.0))
+    queue_size: int = field(default=64, metadata=_range(1, 100000))
+
+
+@dataclass(frozen=True)
+class ServiceConfig:
+    """[service]: `extensometer serve`, the appliance as a long-running service.
+
+    Recordings go to `state_directory` (systemd's $STATE_DIRECTORY wins when set). `start`:
+    `command` waits for the controller's start command (Modbus), `auto` also starts one test
+    as soon as the service is up.
+    """
+
+    state_directory: str = "/var/lib/extensometer"
+    start: str = field(default="command", metadata={"choices": ("command", "auto")})
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole configuration."""
 
@@ -139,9 +214,26 @@ class Config:
     gauge: GaugeConfig = field(default_factory=GaugeConfig)
     run: RunConfig = field(default_factory=RunConfig)
     sim: SimConfig = field(default_factory=SimConfig)
+    record: RecordConfig = field(default_factory=RecordConfig)
+    modbus: ModbusConfig = field(default_factory=ModbusConfig)
+    rerun: RerunConfig = field(default_factory=RerunConfig)
+    service: ServiceConfig = field(default_factory=ServiceConfig)
 
 
-def _check_value(value: Any, kind: type, meta: dict, where: str) -> Any:
+def parse_address(text: str, where: str) -> tuple[str, int]:
+    """Split "HOST:PORT" (IPv6 as "[::1]:PORT"); raises InputError naming `where`."""
+    host, sep, port = text.rpartition(":")
+    host = host.removeprefix("[").removesuffix("]")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise InputError(f"{where}: must be HOST:PORT with a port in 1..65535, got {text!r}")
+    return host, int(port)
+
+
+def _check_value(value: Any, kind: Any, meta: dict, where: str) -> Any:
+    if typing.get_origin(kind) is tuple:
+        if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+            raise InputError(f"{where}: must be a list of strings, got {value!r}")
+        return tuple(value)
     if kind is bool:
         if not isinstance(value, bool):
             raise InputError(f"{where}: must be true or false, got {value!r}")
@@ -168,6 +260,8 @@ def _check_value(value: Any, kind: type, meta: dict, where: str) -> Any:
         raise InputError(f"{where}: must be <= {maximum:g}, got {value!r}")
     if meta.get("odd") and value % 2 == 0:
         raise InputError(f"{where}: must be odd, got {value!r}")
+    if meta.get("address") and value:
+        parse_address(value, where)
     return value
 
 
@@ -199,9 +293,7 @@ def parse_config(text: str, source: str = "<config>") -> Config:
         table = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"{source}: invalid TOML: {exc}") from None
-    config = _build(Config, table, source, None)
-    _check_relations(config, source)
-    return config
+    return config_from_table(table, source)
 
 
 _RELATIONS = (
@@ -221,6 +313,53 @@ def _check_relations(config: Config, source: str) -> None:
             raise InputError(
                 f"{source}: [{section}] {key}: must be <= {upper} ({limit:g}), got {value:g}"
             )
+
+
+def config_to_table(config: Config) -> dict[str, dict[str, Any]]:
+    """The configuration as nested plain tables (keys left out where the value is "not set"),
+    which `config_from_table` turns back into the same configuration."""
+
+    def table(value: Any) -> Any:
+        if dataclasses.is_dataclass(value):
+            return {
+                f.name: table(getattr(value, f.name))
+                for f in dataclasses.fields(value)
+                if getattr(value, f.name) is not None
+            }
+        if isinstance(value, tuple):
+            return list(value)
+        return value
+
+    return table(config)
+
+
+def config_from_table(table: dict[str, Any], source: str = "<config>") -> Config:
+    """Validate a configuration given as nested tables (as TOML or JSON would give them)."""
+    if not isinstance(table, dict):
+        raise InputError(f"{source}: a configuration must be a table")
+    config = _build(Config, table, source, None)
+    _check_relations(config, source)
+    return config
+
+
+def merge_tables(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    """`base` with every key of `override` replaced, table by table."""
+    merged = dict(base)
+    for key, value in override.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = merge_tables(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def read_config_table(path: str | Path) -> dict[str, Any]:
+    """The tables of a TOML file, unvalidated. Raises InputError naming the file."""
+    path = Path(path)
+    try:
+        return tomllib.loads(read_user_text(path, "configuration file"))
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"{path}: invalid TOML: {exc}") from None
 
 
 def load_config(path: str | Path) -> Config:

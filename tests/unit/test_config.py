@@ -1,6 +1,16 @@
+import json
+import re
+
 import pytest
 
-from appliance.config import Config, load_config, parse_config
+from appliance.config import (
+    Config,
+    config_from_table,
+    config_to_table,
+    load_config,
+    merge_tables,
+    parse_config,
+)
 from appliance.errors import InputError
 
 
@@ -45,3 +55,34 @@ def test_files(tmp_path):
     assert load_config(path).gauge.length_mm == 50.0
     with pytest.raises(InputError, match="no such configuration file"):
         load_config(tmp_path / "absent.toml")
+
+
+def test_output_tables_and_addresses():
+    config = parse_config(
+        "[modbus]\ntcp = '127.0.0.1:5020'\nallow_write_from = ['127.0.0.1']\n"
+        "[rerun]\nserve = '[::1]:9876'\n[record]\nfull_frame_rate_hz = 0\n"
+    )
+    assert config.modbus.allow_write_from == ("127.0.0.1",)
+    assert config.record.full_frame_rate_hz == 0.0
+    for text, message in [
+        ("[modbus]\ntcp = '127.0.0.1'\n", "[modbus] tcp: must be HOST:PORT"),
+        ("[modbus]\ntcp = 'localhost:70000'\n", "[modbus] tcp: must be HOST:PORT"),
+        ("[modbus]\nallow_write_from = '10.0.0.1'\n", "[modbus] allow_write_from: must be a list"),
+        ("[modbus]\nword_order = 'middle'\n", "[modbus] word_order: must be one of big, little"),
+        ("[service]\nstart = 'now'\n", "[service] start: must be one of command, auto"),
+    ]:
+        with pytest.raises(InputError, match=re.escape(message)):
+            parse_config(text, "x.toml")
+
+
+def test_a_configuration_survives_its_table_form():
+    config = parse_config(
+        "[camera]\nexposure_us = 250\n[modbus]\nallow_write_from = ['::1']\n"
+        "[gauge]\nlength_mm = 50\n"
+    )
+    table = config_to_table(config)
+    assert "frame_rate_hz" not in table["camera"]
+    assert config_from_table(json.loads(json.dumps(table))) == config
+    merged = merge_tables(table, {"tracking": {"subset_px": 31}})
+    assert config_from_table(merged).tracking.subset_px == 31
+    assert config_from_table(merged).camera.exposure_us == 250.0
