@@ -6,6 +6,8 @@ Subcommands:
     plan    motion blur of an exposure, and the exposure and frame period for a blur budget.
     run     a tensile test: measure strain until a strain limit or the break (`--sim`: the
             simulated test, with its ground truth and errors in the summary).
+    replay  measure a recorded test again from its recorded pixels.
+    info    summarise a recording and check its integrity.
 
 Bad input ends with one line `extensometer: error: ...` naming the culprit and exit status 2.
 """
@@ -161,7 +163,38 @@ def _add_run_parser(commands) -> None:
     pace.add_argument("--realtime", action="store_true", help="simulate in real time")
     pace.add_argument("--fast", action="store_true", help="simulate as fast as possible")
     run.add_argument("--out", type=Path, help="output directory for strain.csv, summary.json")
+    run.add_argument(
+        "--record", type=Path, metavar="FILE.mcap", help="record the test to a new MCAP file"
+    )
     run.add_argument("--json", action="store_true", help="print the summary as JSON, quietly")
+
+    replay = commands.add_parser(
+        "replay",
+        help="measure a recorded test again from its recorded pixels",
+        description=(
+            "Re-run the tracker on the pixels recorded in FILE.mcap with the recorded "
+            "configuration: the strain series is reproduced bit for bit "
+            "(max_abs_diff_to_recorded = 0.0). With --config, the tables and keys of that "
+            "file replace the recorded ones and the test is measured again. A damaged file "
+            "is replayed up to the damage, which is reported."
+        ),
+    )
+    replay.add_argument("recording", metavar="FILE.mcap", type=Path, help="a recording")
+    replay.add_argument(
+        "--config", type=Path, metavar="OVERRIDE", help="TOML tables replacing recorded keys"
+    )
+    replay.add_argument("--json", action="store_true", help="print the summary as JSON, quietly")
+
+    info = commands.add_parser(
+        "info",
+        help="summarise a recording and check its integrity",
+        description=(
+            "Read FILE.mcap front to back, checking every CRC, and print what it holds: the "
+            "test, its channels and message counts, how the run ended, and any damage."
+        ),
+    )
+    info.add_argument("recording", metavar="FILE.mcap", type=Path, help="a recording")
+    info.add_argument("--json", action="store_true", help="print JSON on stdout")
 
 
 def _run_config(args: argparse.Namespace):
@@ -199,7 +232,13 @@ def _run(args: argparse.Namespace) -> int:
     config = _run_config(args)
     progress = None if args.json or not sys.stderr.isatty() else sys.stderr
     try:
-        outcome = run_test(config, simulate=args.sim, out_dir=args.out, progress=progress)
+        outcome = run_test(
+            config,
+            simulate=args.sim,
+            out_dir=args.out,
+            progress=progress,
+            record_path=args.record,
+        )
     except HardwareError as error:
         raise InputError(f"run: {error}") from None
     except OSError as error:
@@ -209,6 +248,45 @@ def _run(args: argparse.Namespace) -> int:
     else:
         print_summary(outcome)
     return 0 if outcome.summary.exit_status in ("completed", "break") else 1
+
+
+def _replay(args: argparse.Namespace) -> int:
+    from appliance.replay import is_exact, replay_recording
+    from appliance.runner import print_summary
+
+    progress = None if args.json or not sys.stderr.isatty() else sys.stderr
+    outcome = replay_recording(args.recording, override=args.config, progress=progress)
+    if args.json:
+        print(outcome.to_json())
+    else:
+        print_summary(outcome)
+    damage = outcome.extra.get("damage")
+    if damage:
+        print(f"extensometer: {args.recording}: {damage}", file=sys.stderr)
+        return 1
+    if args.config is None and not is_exact(outcome):
+        print(
+            f"extensometer: {args.recording}: {outcome.extra['samples_differing']} samples "
+            "differ from the recording",
+            file=sys.stderr,
+        )
+        return 1
+    return 0
+
+
+def _info(args: argparse.Namespace) -> int:
+    from appliance.recording_info import print_info, recording_info
+
+    info = recording_info(args.recording)
+    if args.json:
+        json.dump(info, sys.stdout, indent=1)
+        sys.stdout.write("\n")
+    else:
+        print_info(info, sys.stdout)
+    if info["damage"]:
+        print(f"extensometer: {args.recording}: {info['damage']}", file=sys.stderr)
+        return 1
+    return 0
 
 
 def _add_plan_parser(commands) -> None:
@@ -488,6 +566,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _plan(args)
         if args.command == "run":
             return _run(args)
+        if args.command == "replay":
+            return _replay(args)
+        if args.command == "info":
+            return _info(args)
         return _bench(args)
     except InputError as error:
         print(f"extensometer: error: {error}", file=sys.stderr)

@@ -128,6 +128,19 @@ class StrainGauges:
             transverse.length_px(reference_positions) if transverse is not None else math.nan
         )
 
+    def rezero(self, positions: np.ndarray) -> None:
+        """Make the gauge lengths at `positions` (n, 2) the new L0 (strain zero from here).
+
+        Raises:
+            ValueError: the axial gauge has no length there (a mark without a point).
+        """
+        length = self.axial.length_px(positions)
+        if not length > 0:
+            raise ValueError("axial gauge has no length to zero on")
+        self.axial_l0_px = length
+        if self.transverse is not None:
+            self.transverse_l0_px = self.transverse.length_px(positions)
+
     @property
     def gauge_length_mm(self) -> float:
         """Original axial gauge length L0, mm."""

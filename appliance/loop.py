@@ -121,6 +121,7 @@ class MeasurementLoop:
         self._samples: queue.Queue = queue.Queue(maxsize=queue_size)
         self._stop = threading.Event()
         self._finished = threading.Event()
+        self._zero_requested = threading.Event()
         self._result = LoopResult()
         self._errors: list[tuple[str, BaseException]] = []
         self._lock = threading.Lock()
@@ -128,6 +129,11 @@ class MeasurementLoop:
     def request_stop(self, reason: str = "operator stop") -> None:
         """Ask the run to end normally (thread-safe)."""
         self._finish("completed", reason)
+
+    def request_zero(self) -> None:
+        """Zero the strain at the next measured frame (thread-safe); see
+        `appliance.measurement.FrameMeasurer.zero`."""
+        self._zero_requested.set()
 
     def run(self, criteria: StopCriteria) -> LoopResult:
         """Take the reference, measure until a stop criterion, a break, an abort or a fault."""
@@ -268,6 +274,9 @@ class MeasurementLoop:
                     continue
                 frame, machine, delivered = item
                 started = self._wall()
+                if self._zero_requested.is_set():
+                    self._zero_requested.clear()
+                    measurer.zero()
                 sample = measurer.measure(frame, machine, delivered)
                 for sink in self.immediate_sinks:
                     sink(sample)

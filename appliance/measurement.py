@@ -5,7 +5,8 @@
 recorded pixels reproduces the recorded strain exactly:
 
 1. the marks are tracked (`appliance.tracking.MarkTracker`) at the frame's device time;
-2. their positions become strains (`appliance.gauges.StrainGauges`);
+2. their positions become strains (`appliance.gauges.StrainGauges`); a zero request makes
+   this frame's gauge lengths the new L0 first;
 3. the sample is *valid* when every axial gauge mark had a measured point and the force has
    not fallen as after a break (a frame of a broken specimen is not a strain);
 4. `ending` says whether the test is over: a break (force drop, or a mark lost for several
@@ -52,6 +53,7 @@ class StrainSample:
         latency_s: wall time from frame delivery to this sample.
         windows: copies of the pixels of the frame the tracker read, one window per mark:
             enough to measure the frame again to the same numbers.
+        zeroed: the strain was zeroed just before this frame (its gauge lengths became L0).
         image: the whole frame (shared, not a copy: read it, never write it).
         metadata: the frame's metadata (a simulator's ground truth, for instance).
     """
@@ -71,6 +73,7 @@ class StrainSample:
     machine: FrameState | None
     latency_s: float
     windows: tuple[ImageWindow, ...] = ()
+    zeroed: bool = False
     image: np.ndarray | None = None
     metadata: Mapping[str, Any] = field(default_factory=dict)
 
@@ -138,7 +141,13 @@ class FrameMeasurer:
         self.peak_force_n = 0.0
         self._lost_run = 0
         self._force_broken = False
+        self._zero_pending = False
         self._last: StrainSample | None = None
+
+    def zero(self) -> None:
+        """Zero the strain at the next frame in which every mark is measured: the gauge
+        lengths measured in it become L0."""
+        self._zero_pending = True
 
     def measure(
         self, frame: Frame, machine: FrameState | None, delivered_s: float | None = None
@@ -153,6 +162,10 @@ class FrameMeasurer:
         delivered = self._wall() if delivered_s is None else delivered_s
         time_s = (frame.timestamp_ns - self.reference_time_ns) * 1e-9
         tracked = self.tracker.track(frame.image, time_s, frame.exposure_us * 1e-6)
+        zeroed = self._zero_pending and tracked.marks_lost == 0
+        if zeroed:
+            self.gauges.rezero(tracked.positions)
+            self._zero_pending = False
         reading = self.gauges.read(tracked.positions)
         measured = tracked.measured
         marks_seen = all(measured[mark].any() for mark in self._axial_marks)
@@ -181,6 +194,7 @@ class FrameMeasurer:
             machine=machine,
             latency_s=self._wall() - delivered,
             windows=cut_windows(np.asarray(frame.image), tracked.read_regions),
+            zeroed=zeroed,
             image=frame.image,
             metadata=frame.metadata,
         )

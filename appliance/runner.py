@@ -11,7 +11,8 @@
    length; each axial mark a short line of points;
 4. the loop (`appliance.loop`) until the strain limit, the break, or an interrupt;
 5. outputs: `strain.csv` (every sample, with the truth when simulated) and `summary.json`
-   in the output directory, and the summary returned.
+   in the output directory, the MCAP recording (`appliance.recorder`) and any other output
+   given (a viewer), and the summary returned.
 """
 
 from __future__ import annotations
@@ -20,20 +21,25 @@ import dataclasses
 import json
 import math
 import sys
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
 import numpy as np
 
+from appliance import __version__
 from appliance.config import Config
 from appliance.errors import InputError
-from appliance.gauges import Calibration, StrainGauges, place_marks
+from appliance.gauges import Calibration, StrainGauges, StrainGaugesLayout, place_marks
 from appliance.loop import MeasurementLoop
 from appliance.measurement import StopCriteria, StrainSample
 from appliance.optics import Optics
+from appliance.outputs import RunFacts, RunOutput
 from appliance.planner import ExposurePlan, motion_blur_length, plan_exposure
+from appliance.recorder import McapRecorder
+from appliance.run_state import RunStateMachine, Transition
 from appliance.strain_file import StrainCsvWriter
 from appliance.summary import RunSummary, SampleRecord
 from appliance.tracking import MarkTracker, TrackerSettings, TrackStatus
@@ -143,12 +149,57 @@ class _Progress:
         self.stream.flush()
 
 
+def tracker_settings(config: Config) -> TrackerSettings:
+    """The tracker's settings of a configuration's [tracking] table."""
+    t = config.tracking
+    return TrackerSettings(
+        subset_px=t.subset_px,
+        min_subset_px=t.min_subset_px,
+        search=t.search,
+        search_radius_px=t.search_radius_px,
+        reacquire_search=t.reacquire_search,
+        reacquire_radius_px=t.reacquire_radius_px,
+        prefilter_sigma_px=t.prefilter_sigma_px,
+        min_zncc=t.min_zncc,
+        update_zncc=t.update_zncc,
+        update_deformation=t.update_deformation,
+    )
+
+
+def marks_of(layout: StrainGaugesLayout) -> tuple[tuple[int, ...], ...]:
+    """The tracker's marks of a gauge layout: the axial marks, then the transverse ones."""
+    marks = [layout.axial.first, layout.axial.second]
+    if layout.transverse is not None:
+        marks += [layout.transverse.first, layout.transverse.second]
+    return tuple(tuple(m) for m in marks)
+
+
+def build_measurement(
+    config: Config,
+    reference: np.ndarray,
+    points: np.ndarray,
+    layout: StrainGaugesLayout,
+    calibration: Calibration,
+) -> tuple[MarkTracker, StrainGauges]:
+    """The tracker and gauges of a test, on its reference image and placed points."""
+    image = np.asarray(reference, dtype=np.float64)
+    tracker = MarkTracker(image, points, marks_of(layout), tracker_settings(config))
+    gauges = StrainGauges(layout.axial, points, calibration, layout.transverse)
+    return tracker, gauges
+
+
 def run_test(
     config: Config,
     *,
     simulate: bool,
     out_dir: Path | None = None,
     progress: TextIO | None = None,
+    record_path: Path | None = None,
+    outputs: Sequence[RunOutput] = (),
+    immediate_sinks: Sequence[Callable[[StrainSample], None]] = (),
+    on_transition: Callable[[Transition], None] | None = None,
+    on_loop: Callable[[MeasurementLoop], None] | None = None,
+    test_id: str = "",
 ) -> RunOutcome:
     """Run one test as configured; see the module docstring.
 
@@ -157,9 +208,18 @@ def run_test(
         simulate: use the simulated world (ground truth in the outputs).
         out_dir: where to write strain.csv and summary.json (created); None = nowhere.
         progress: a terminal stream for the progress line; None = quiet.
+        record_path: the MCAP recording to write (must not exist); None = no recording.
+        outputs: further outputs following the test (a viewer, for instance).
+        immediate_sinks: called on the tracking thread with every sample (Modbus registers,
+            watchdog).
+        on_transition: called at every change of the run state.
+        on_loop: called with the measurement loop before it runs (to stop or zero it from
+            another thread).
+        test_id: names the test in the recording and the viewer.
 
     Raises:
-        InputError: a configuration that cannot run (named key).
+        InputError: a configuration that cannot run (named key), or a recording file that
+            cannot be created.
         HardwareError: a device that cannot be opened or configured.
     """
     if not simulate:
@@ -174,34 +234,55 @@ def run_test(
     plan = exposure_for(config, optics, speed)
     calibration = Calibration.from_optics(optics.pixel_size_um, optics.magnification)
     gauge_length_mm = config.gauge.length_mm or world.gauge_length_mm
-    settings = TrackerSettings(
-        subset_px=config.tracking.subset_px,
-        min_subset_px=config.tracking.min_subset_px,
-        search=config.tracking.search,
-        search_radius_px=config.tracking.search_radius_px,
-        reacquire_search=config.tracking.reacquire_search,
-        reacquire_radius_px=config.tracking.reacquire_radius_px,
-        prefilter_sigma_px=config.tracking.prefilter_sigma_px,
-        min_zncc=config.tracking.min_zncc,
-        update_zncc=config.tracking.update_zncc,
-        update_deformation=config.tracking.update_deformation,
-    )
-    camera, frame = world.camera, world.frame
-    camera.open()
-    frame.open()
-    pixel_format = (
-        PixelFormat.MONO8 if config.camera.pixel_format == "Mono8" else PixelFormat.MONO12
-    )
-    camera.configure(
-        CameraSettings(
-            exposure_us=plan.exposure_s * 1e6,
-            gain_db=config.camera.gain_db,
-            pixel_format=pixel_format,
+    records: list[SampleRecord] = []
+    recorder = None
+    if record_path is not None:
+        recorder = McapRecorder(
+            record_path,
+            config.record,
+            truth=lambda sample: (records[-1].true_strain, records[-1].true_elongation_mm),
         )
-    )
-    camera.prepare(TriggerInfo(mode=TriggerMode.INTERNAL, rate_hz=1.0 / plan.frame_period_s))
+    every_output: list[RunOutput] = ([recorder] if recorder is not None else []) + list(outputs)
+    listeners = [on_transition] if on_transition is not None else []
+    if recorder is not None:
+        listeners.insert(0, lambda t: recorder.log("INFO", _transition_text(t)))
 
-    state: dict[str, Any] = {}
+    def transition(record: Transition) -> None:
+        for listener in listeners:
+            listener(record)
+
+    state = RunStateMachine(on_transition=transition)
+    camera, frame = world.camera, world.frame
+    try:
+        camera.open()
+        frame.open()
+        pixel_format = (
+            PixelFormat.MONO8 if config.camera.pixel_format == "Mono8" else PixelFormat.MONO12
+        )
+        camera.configure(
+            CameraSettings(
+                exposure_us=plan.exposure_s * 1e6,
+                gain_db=config.camera.gain_db,
+                pixel_format=pixel_format,
+            )
+        )
+        camera.prepare(TriggerInfo(mode=TriggerMode.INTERNAL, rate_hz=1.0 / plan.frame_period_s))
+    except BaseException:
+        if recorder is not None:
+            recorder.close()
+        raise
+
+    extra = {
+        "material": config.sim.material,
+        "speed_mm_min": speed,
+        "gauge_length_mm": gauge_length_mm,
+        "scale_mm_per_px": calibration.scale_mm_per_px,
+        "exposure_us": plan.exposure_s * 1e6,
+        "frame_rate_hz": 1.0 / plan.frame_period_s,
+        "blur_px_at_crosshead_speed": plan.blur_px,
+        "blur_budget_met": bool(plan.budget_met),
+    }
+    state_of_run: dict[str, Any] = {}
 
     def setup(reference):
         g = config.gauge
@@ -215,20 +296,32 @@ def run_test(
             transverse_width_mm=transverse,
             along_axis=True,
         )
-        marks = [layout.axial.first, layout.axial.second]
-        if layout.transverse is not None:
-            marks += [layout.transverse.first, layout.transverse.second]
-        image = np.asarray(reference.image, dtype=np.float64)
-        state["truth"] = world.gauge_truth(points, layout.axial, reference)
-        state["points"] = points
-        tracker = MarkTracker(image, points, marks, settings)
-        gauges = StrainGauges(layout.axial, points, calibration, layout.transverse)
+        state_of_run["truth"] = world.gauge_truth(points, layout.axial, reference)
+        state_of_run["points"] = points
+        tracker, gauges = build_measurement(config, reference.image, points, layout, calibration)
+        exposure_end_ns = reference.timestamp_ns + int(round(reference.exposure_us * 1e3))
+        facts = RunFacts(
+            config=config,
+            reference=reference,
+            points=points,
+            marks=marks_of(layout),
+            layout=layout,
+            calibration=calibration,
+            gauge_length_mm=gauges.gauge_length_mm,
+            epoch_offset_ns=time.time_ns() - exposure_end_ns,
+            devices={
+                "camera": camera.url,
+                "frame": frame.url,
+                "software": f"extensometer {__version__}",
+            },
+            facts={"test_id": test_id, "simulated": True, **extra},
+        )
+        for output in every_output:
+            output.begin(facts)
         return tracker, gauges
 
-    records: list[SampleRecord] = []
-
     def record(sample: StrainSample) -> None:
-        true_strain, true_elongation = state["truth"].at(sample)
+        true_strain, true_elongation = state_of_run["truth"].at(sample)
         records.append(
             SampleRecord(
                 strain=sample.reading.engineering_strain,
@@ -240,10 +333,10 @@ def run_test(
                 true_elongation_mm=true_elongation,
             )
         )
-        state["last_time_s"] = sample.time_s
+        state_of_run["last_time_s"] = sample.time_s
         if sample.data_valid:
-            blur = state["truth"].blur_px(sample)
-            state["max_blur_px"] = max(state.get("max_blur_px", 0.0), blur)
+            blur = state_of_run["truth"].blur_px(sample)
+            state_of_run["max_blur_px"] = max(state_of_run.get("max_blur_px", 0.0), blur)
 
     def truth_columns(sample: StrainSample) -> dict[str, float]:
         measured = records[-1]
@@ -256,11 +349,19 @@ def run_test(
     sinks: list[Callable[[StrainSample], None]] = [record]
     writer = None
     csv_path = summary_path = None
-    if out_dir is not None:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        csv_path = out_dir / "strain.csv"
-        writer = StrainCsvWriter(csv_path, TRUTH_COLUMNS, truth_columns)
-        sinks.append(writer)
+    try:
+        if out_dir is not None:
+            out_dir.mkdir(parents=True, exist_ok=True)
+            csv_path = out_dir / "strain.csv"
+            writer = StrainCsvWriter(csv_path, TRUTH_COLUMNS, truth_columns)
+            sinks.append(writer)
+    except BaseException:
+        if recorder is not None:
+            recorder.close()
+        camera.close()
+        frame.close()
+        raise
+    sinks.extend(every_output)
     bar = _Progress(progress) if progress is not None else None
     if bar is not None:
         sinks.append(bar)
@@ -270,9 +371,14 @@ def run_test(
         frame,
         setup,
         sinks=sinks,
+        immediate_sinks=immediate_sinks,
+        state=state,
         block_when_full=world.pace is Pace.FAST,
         start_speed_mm_min=speed,
     )
+    if on_loop is not None:
+        on_loop(loop)
+    output_errors: list[str] = []
     try:
         result = loop.run(
             StopCriteria(until_strain=until_strain, until_break=config.run.until_break)
@@ -284,27 +390,38 @@ def run_test(
             bar.close()
         camera.close()
         frame.close()
+    for output in every_output:
+        try:
+            output.end(result)
+        except Exception as exc:  # noqa: BLE001 - one failing output must not hide the others
+            output_errors.append(f"{type(exc).__name__}: {exc}")
+    if output_errors and result.exit_status in ("completed", "break"):
+        result.exit_status = "fault"
+        result.reason = f"outputs: {output_errors[0]}"
     summary = RunSummary.from_run(result, records)
-    extra = {
-        "material": config.sim.material,
-        "speed_mm_min": speed,
-        "gauge_length_mm": gauge_length_mm,
-        "scale_mm_per_px": calibration.scale_mm_per_px,
-        "exposure_us": plan.exposure_s * 1e6,
-        "frame_rate_hz": 1.0 / plan.frame_period_s,
-        "blur_px_at_crosshead_speed": plan.blur_px,
-        "blur_budget_met": bool(plan.budget_met),
-        "max_blur_px_at_marks": state.get("max_blur_px"),
-        "test_duration_s": state.get("last_time_s", 0.0),
-        "points": int(len(state.get("points", []))),
-        "run_states": [t.target.value for t in loop.state.history],
-    }
+    extra.update(
+        {
+            "max_blur_px_at_marks": state_of_run.get("max_blur_px"),
+            "test_duration_s": state_of_run.get("last_time_s", 0.0),
+            "points": int(len(state_of_run.get("points", []))),
+            "run_states": [t.target.value for t in loop.state.history],
+        }
+    )
+    for output in every_output:
+        stats = getattr(output, "stats", None)
+        if callable(stats):
+            extra.update(stats())
     outcome = RunOutcome(summary, extra, csv_path)
     if out_dir is not None:
         summary_path = out_dir / "summary.json"
         summary_path.write_text(outcome.to_json() + "\n")
         outcome.summary_path = summary_path
     return outcome
+
+
+def _transition_text(transition: Transition) -> str:
+    reason = f": {transition.reason}" if transition.reason else ""
+    return f"run state {transition.source.value} -> {transition.target.value}{reason}"
 
 
 def _json_ready(value: Any) -> Any:

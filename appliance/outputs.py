@@ -1,0 +1,75 @@
+"""What every output of a test receives: the run's facts at the start, each sample, the result.
+
+An output (the MCAP recorder, the Rerun viewer, the strain file) follows one test:
+
+    begin(facts)      once, after the reference frame is taken and the marks are placed
+    output(sample)    for every sample, in order, on the loop's publishing thread
+    end(result)       once, after the loop has ended (also after a fault or an abort)
+
+`RunFacts` holds everything fixed for the whole test: the configuration in force, the
+reference frame, the points and how they form gauge marks, the calibration, the device
+identities, and the mapping from device time to UNIX time.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from appliance.config import Config
+from appliance.gauges import Calibration, StrainGaugesLayout
+from appliance.loop import LoopResult
+from appliance.measurement import StrainSample
+from hal.camera.base import Frame
+
+
+@dataclass(frozen=True)
+class RunFacts:
+    """The facts of one test, fixed from its reference frame on.
+
+    Attributes:
+        config: the configuration in force (after command-line overrides).
+        reference: the reference frame (strain zero).
+        points: (n, 2) positions of the tracked points in the reference frame, px.
+        marks: groups of point indices tracked together (the tracker's marks).
+        layout: which points form the axial (and transverse) gauge.
+        calibration: px -> mm in the object plane.
+        gauge_length_mm: the original axial gauge length L0, mm.
+        epoch_offset_ns: add to a device timestamp to get UNIX time, ns (measured when the
+            reference frame was delivered).
+        devices: identities of the devices and software, name -> text (camera, frame,
+            software version).
+        facts: further facts worth keeping (exposure plan, material of a simulation).
+    """
+
+    config: Config
+    reference: Frame
+    points: np.ndarray
+    marks: tuple[tuple[int, ...], ...]
+    layout: StrainGaugesLayout
+    calibration: Calibration
+    gauge_length_mm: float
+    epoch_offset_ns: int
+    devices: Mapping[str, str] = field(default_factory=dict)
+    facts: Mapping[str, object] = field(default_factory=dict)
+
+    def unix_time_ns(self, device_ns: int) -> int:
+        """UNIX time of a device timestamp, ns."""
+        return int(device_ns) + self.epoch_offset_ns
+
+
+@runtime_checkable
+class RunOutput(Protocol):
+    """An output that follows one test."""
+
+    def begin(self, facts: RunFacts) -> None:
+        """The test has its reference; nothing has been measured yet."""
+
+    def __call__(self, sample: StrainSample) -> None:
+        """The next sample (publishing thread)."""
+
+    def end(self, result: LoopResult) -> None:
+        """The test is over; `result` says how it ended. Close files and connections."""

@@ -1,0 +1,412 @@
+"""The format of a test recording: MCAP channels, their schemas, and how records are encoded.
+
+One MCAP file per test (written by `appliance.recorder`, read by `appliance.replay` and
+`extensometer info`). Log time of every per-frame message is the frame's acquisition time
+(start of exposure) as UNIX time in ns; the message `sequence` is the sample index, so the
+messages of one frame can be gathered from every channel. Per frame, in this order:
+
+* `/camera/window/<k>` (protobuf `foxglove.RawImage`): the pixels mark k's tracking read;
+* `/camera/full` (`foxglove.RawImage`): the whole frame at the configured rate, and the
+  reference frame;
+* `/camera/trigger` (JSON): what started the exposure (frame id, device time, exposure, mode);
+* `/frame/state` (JSON): the controller's state read with the frame (crosshead, speed, force);
+* `/tracking/points` (JSON): every point's position, displacement, shape parameters, ZNCC and
+  status, and where the windows lie;
+* `/sim/truth` (JSON): the simulation's true strain and elongation (simulated tests only);
+* `/strain` (JSON, the last of each frame): strains, elongation, gauge length, Poisson's
+  ratio, data-valid flag.
+
+Other channels: `/recorder/status` (JSON: changes of the full-frame rate when the disk falls
+behind) and `/log` (protobuf `foxglove.Log`: run states, commands, degradation, the end).
+
+JSON channels carry a JSON Schema (`jsonschema` encoding, so Foxglove plots their fields);
+numbers are written with Python's shortest exact representation, so every float reads back
+bit for bit; NaN and infinities are written as null and read back as NaN.
+
+Metadata records (`extensometer.*`): `recording` (format and version), `run_start` (test id,
+start time, the device-to-UNIX clock offset, the reference frame's facts), `config` (the
+configuration in force, as JSON), `calibration`, `marks` (the points and how they form marks
+and gauges), `devices` (camera, frame controller, software), and at the end `run_stop` (exit
+status, reason, counts). The reference frame is the attachment `reference.png` (lossless).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import cv2
+import numpy as np
+from foxglove_schemas_protobuf.Log_pb2 import Log
+from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+from mcap_protobuf.schema import build_file_descriptor_set
+
+from appliance.frame_windows import ImageWindow
+from appliance.measurement import StrainSample
+from appliance.tracking import TrackStatus
+from hal.frame.base import FrameState
+
+FORMAT_NAME = "extensometer-mcap"
+FORMAT_VERSION = "1"
+PROFILE = ""
+REFERENCE_ATTACHMENT = "reference.png"
+META_PREFIX = "extensometer."
+
+TOPIC_FULL = "/camera/full"
+TOPIC_WINDOW = "/camera/window/{mark}"
+TOPIC_TRIGGER = "/camera/trigger"
+TOPIC_MACHINE = "/frame/state"
+TOPIC_POINTS = "/tracking/points"
+TOPIC_STRAIN = "/strain"
+TOPIC_TRUTH = "/sim/truth"
+TOPIC_RECORDER = "/recorder/status"
+TOPIC_LOG = "/log"
+
+PROTOBUF_TYPES = {"foxglove.RawImage": RawImage, "foxglove.Log": Log}
+"""Protobuf schema name -> message class."""
+
+_NUMBER = {"type": ["number", "null"]}
+_INTEGER = {"type": "integer"}
+_NUMBERS = {"type": "array", "items": _NUMBER}
+
+JSON_SCHEMAS: dict[str, dict[str, Any]] = {
+    "extensometer.Trigger": {
+        "type": "object",
+        "title": "What started one exposure",
+        "properties": {
+            "frame_id": _INTEGER,
+            "timestamp_ns": _INTEGER,
+            "exposure_us": _NUMBER,
+            "mode": {"type": "string"},
+            "sequence": {"type": ["integer", "null"]},
+        },
+    },
+    "extensometer.FrameState": {
+        "type": "object",
+        "title": "Tensile frame controller state read with a frame",
+        "properties": {
+            "crosshead_mm": _NUMBER,
+            "speed_mm_min": _NUMBER,
+            "force_n": _NUMBER,
+            "running": {"type": "boolean"},
+            "timestamp_ns": _INTEGER,
+            "encoder_counts": {"type": ["integer", "null"]},
+        },
+    },
+    "extensometer.TrackedPoints": {
+        "type": "object",
+        "title": "Every tracked point of one frame",
+        "properties": {
+            "index": _INTEGER,
+            "frame_id": _INTEGER,
+            "timestamp_ns": _INTEGER,
+            "exposure_us": _NUMBER,
+            "zeroed": {"type": "boolean"},
+            "windows": {
+                "type": "array",
+                "items": {
+                    "type": "object",
+                    "properties": {
+                        "mark": _INTEGER,
+                        "x": _INTEGER,
+                        "y": _INTEGER,
+                        "width": _INTEGER,
+                        "height": _INTEGER,
+                    },
+                },
+            },
+            "points": {
+                "type": "object",
+                "properties": {
+                    **{k: _NUMBERS for k in ("x", "y", "u", "v", "ux", "uy", "vx", "vy", "zncc")},
+                    "status": {"type": "array", "items": {"type": "string"}},
+                },
+            },
+        },
+    },
+    "extensometer.Strain": {
+        "type": "object",
+        "title": "Strain of one frame",
+        "properties": {
+            "index": _INTEGER,
+            "frame_id": _INTEGER,
+            "timestamp_ns": _INTEGER,
+            "time_s": _NUMBER,
+            "engineering_strain": _NUMBER,
+            "true_strain": _NUMBER,
+            "transverse_strain": _NUMBER,
+            "poisson_ratio": _NUMBER,
+            "elongation_mm": _NUMBER,
+            "gauge_length_mm": _NUMBER,
+            "axial_px": _NUMBER,
+            "data_valid": {"type": "boolean"},
+            "points_lost": _INTEGER,
+            "reference_updates": _INTEGER,
+            "latency_ms": _NUMBER,
+        },
+    },
+    "extensometer.Truth": {
+        "type": "object",
+        "title": "True strain of a simulated frame",
+        "properties": {
+            "index": _INTEGER,
+            "true_engineering_strain": _NUMBER,
+            "true_elongation_mm": _NUMBER,
+        },
+    },
+    "extensometer.RecorderStatus": {
+        "type": "object",
+        "title": "Full-frame recording rate",
+        "properties": {
+            "full_frame_interval_s": _NUMBER,
+            "degradation_level": _INTEGER,
+            "backlog_bytes": _INTEGER,
+            "full_frames_skipped": _INTEGER,
+            "reason": {"type": "string"},
+        },
+    },
+}
+"""JSON channel schema name -> JSON Schema."""
+
+TOPIC_SCHEMAS: dict[str, str] = {
+    TOPIC_FULL: "foxglove.RawImage",
+    TOPIC_TRIGGER: "extensometer.Trigger",
+    TOPIC_MACHINE: "extensometer.FrameState",
+    TOPIC_POINTS: "extensometer.TrackedPoints",
+    TOPIC_STRAIN: "extensometer.Strain",
+    TOPIC_TRUTH: "extensometer.Truth",
+    TOPIC_RECORDER: "extensometer.RecorderStatus",
+    TOPIC_LOG: "foxglove.Log",
+}
+"""Topic -> schema name; window topics use foxglove.RawImage."""
+
+STRAIN_FIELDS = (
+    "engineering_strain",
+    "true_strain",
+    "transverse_strain",
+    "poisson_ratio",
+    "elongation_mm",
+    "gauge_length_mm",
+    "axial_px",
+)
+"""The measured quantities of a strain record (the reading's fields)."""
+
+
+class FormatError(ValueError):
+    """A record that does not follow this format (names the record)."""
+
+
+def schema_of(topic: str) -> str:
+    """The schema name of a topic."""
+    if topic.startswith("/camera/window/"):
+        return "foxglove.RawImage"
+    return TOPIC_SCHEMAS[topic]
+
+
+def schema_data(name: str) -> tuple[str, bytes]:
+    """(schema encoding, schema bytes) of a schema name, as MCAP stores them."""
+    if name in PROTOBUF_TYPES:
+        return "protobuf", build_file_descriptor_set(PROTOBUF_TYPES[name]).SerializeToString()
+    return "jsonschema", json.dumps(JSON_SCHEMAS[name]).encode()
+
+
+def message_encoding(name: str) -> str:
+    """The message encoding of a schema name."""
+    return "protobuf" if name in PROTOBUF_TYPES else "json"
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, float | np.floating):
+        value = float(value)
+        return value if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.ndarray):
+        return [_plain(v) for v in value.tolist()]
+    if isinstance(value, Mapping):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    return value
+
+
+def encode_json(record: Mapping[str, Any]) -> bytes:
+    """A record as strict JSON (NaN and infinities as null, floats exact)."""
+    return json.dumps(_plain(record), allow_nan=False, separators=(",", ":")).encode()
+
+
+def decode_json(data: bytes) -> dict[str, Any]:
+    """A JSON record (nulls stay None; use `number` to read a float field)."""
+    return json.loads(data)
+
+
+def number(value: Any) -> float:
+    """A JSON number field as a float (null -> NaN)."""
+    return math.nan if value is None else float(value)
+
+
+def numbers(values: Any) -> np.ndarray:
+    """A JSON number array as float64 (null -> NaN)."""
+    return np.array([number(v) for v in values], dtype=np.float64)
+
+
+def _encoding(image: np.ndarray) -> str:
+    if image.dtype == np.uint8:
+        return "mono8"
+    if image.dtype == np.uint16:
+        return "mono16"
+    raise FormatError(f"images must be uint8 or uint16, got {image.dtype}")
+
+
+def raw_image(image: np.ndarray, time_ns: int, frame_id: str = "camera") -> bytes:
+    """A grey image as a serialised `foxglove.RawImage` (mono8, or mono16 little-endian)."""
+    encoding = _encoding(image)
+    height, width = image.shape
+    pixels = np.ascontiguousarray(image, dtype="<u2" if encoding == "mono16" else np.uint8)
+    message = RawImage(
+        frame_id=frame_id,
+        width=width,
+        height=height,
+        encoding=encoding,
+        step=width * pixels.itemsize,
+        data=pixels.tobytes(),
+    )
+    message.timestamp.FromNanoseconds(int(time_ns))
+    return message.SerializeToString()
+
+
+def image_of(data: bytes) -> np.ndarray:
+    """The grey image of a serialised `foxglove.RawImage` written by `raw_image`."""
+    message = RawImage.FromString(data)
+    dtypes = {"mono8": np.uint8, "mono16": np.dtype("<u2")}
+    if message.encoding not in dtypes:
+        raise FormatError(f"RawImage encoding {message.encoding!r} is not mono8 or mono16")
+    dtype = np.dtype(dtypes[message.encoding])
+    row = message.width * dtype.itemsize
+    if message.step != row or len(message.data) != row * message.height:
+        raise FormatError(
+            f"RawImage {message.width}x{message.height} step {message.step}: "
+            f"{len(message.data)} bytes do not match"
+        )
+    image = np.frombuffer(message.data, dtype=dtype).reshape(message.height, message.width)
+    return image.astype(np.uint16) if dtype.itemsize == 2 else image.copy()
+
+
+def log_message(time_ns: int, level: str, text: str, name: str = "extensometer") -> bytes:
+    """A serialised `foxglove.Log` entry; `level` is INFO, WARNING, ERROR, ..."""
+    message = Log(level=Log.Level.Value(level), message=text, name=name)
+    message.timestamp.FromNanoseconds(int(time_ns))
+    return message.SerializeToString()
+
+
+def png(image: np.ndarray) -> bytes:
+    """A grey image as lossless PNG (8 or 16 bit)."""
+    _encoding(image)
+    ok, data = cv2.imencode(".png", np.ascontiguousarray(image))
+    if not ok:
+        raise FormatError("the image could not be encoded as PNG")
+    return data.tobytes()
+
+
+def image_of_png(data: bytes) -> np.ndarray:
+    """The grey image of `png`'s bytes."""
+    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None or image.ndim != 2:
+        raise FormatError("the reference attachment is not a grey PNG image")
+    return image
+
+
+def trigger_record(sample: StrainSample, mode: str) -> dict[str, Any]:
+    """What started the exposure of a sample's frame."""
+    trigger = sample.metadata.get("trigger", {}) if sample.metadata else {}
+    return {
+        "frame_id": sample.frame_id,
+        "timestamp_ns": sample.timestamp_ns,
+        "exposure_us": sample.exposure_us,
+        "mode": mode,
+        "sequence": trigger.get("sequence"),
+    }
+
+
+def machine_record(state: FrameState) -> dict[str, Any]:
+    """A controller state as a record."""
+    return {
+        "crosshead_mm": state.crosshead_mm,
+        "speed_mm_min": state.speed_mm_min,
+        "force_n": state.force_n,
+        "running": state.running,
+        "timestamp_ns": state.timestamp_ns,
+        "encoder_counts": state.encoder_counts,
+    }
+
+
+def machine_of(record: Mapping[str, Any]) -> FrameState:
+    """The controller state of a `machine_record`."""
+    return FrameState(
+        crosshead_mm=number(record["crosshead_mm"]),
+        speed_mm_min=number(record["speed_mm_min"]),
+        force_n=number(record["force_n"]),
+        running=bool(record["running"]),
+        timestamp_ns=int(record["timestamp_ns"]),
+        encoder_counts=record.get("encoder_counts"),
+    )
+
+
+def points_record(
+    sample: StrainSample, reference_points: np.ndarray, zeroed: bool
+) -> dict[str, Any]:
+    """Every point of a sample, and where its windows lie."""
+    positions = sample.positions
+    gradients = sample.gradients
+    return {
+        "index": sample.index,
+        "frame_id": sample.frame_id,
+        "timestamp_ns": sample.timestamp_ns,
+        "exposure_us": sample.exposure_us,
+        "zeroed": zeroed,
+        "windows": [
+            {"mark": k, "x": w.x, "y": w.y, "width": w.pixels.shape[1], "height": w.pixels.shape[0]}
+            for k, w in enumerate(sample.windows)
+        ],
+        "points": {
+            "x": positions[:, 0],
+            "y": positions[:, 1],
+            "u": positions[:, 0] - reference_points[:, 0],
+            "v": positions[:, 1] - reference_points[:, 1],
+            "ux": gradients[:, 0],
+            "uy": gradients[:, 1],
+            "vx": gradients[:, 2],
+            "vy": gradients[:, 3],
+            "zncc": sample.zncc,
+            "status": [TrackStatus(int(s)).name.lower() for s in sample.status],
+        },
+    }
+
+
+def strain_record(sample: StrainSample) -> dict[str, Any]:
+    """The strain of a sample."""
+    reading = sample.reading
+    return {
+        "index": sample.index,
+        "frame_id": sample.frame_id,
+        "timestamp_ns": sample.timestamp_ns,
+        "time_s": sample.time_s,
+        **{name: getattr(reading, name) for name in STRAIN_FIELDS},
+        "data_valid": sample.data_valid,
+        "points_lost": int((sample.status == TrackStatus.LOST).sum()),
+        "reference_updates": sample.reference_updates,
+        "latency_ms": sample.latency_s * 1e3,
+    }
+
+
+def window_of(data: bytes, place: Mapping[str, Any]) -> ImageWindow:
+    """A window from its `/camera/window/<k>` image and its place in `/tracking/points`."""
+    pixels = image_of(data)
+    if pixels.shape != (place["height"], place["width"]):
+        raise FormatError(
+            f"window of mark {place['mark']}: image {pixels.shape[1]}x{pixels.shape[0]} "
+            f"does not match its place {place['width']}x{place['height']}"
+        )
+    return ImageWindow(int(place["x"]), int(place["y"]), pixels)

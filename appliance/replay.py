@@ -1,0 +1,266 @@
+"""Replay: measure a recorded test again from its recorded pixels.
+
+`replay_recording` reads a recording (`appliance.recording_reader`), rebuilds the test's
+tracker and gauges from the recorded configuration, reference frame and marks, and measures
+every recorded frame again with the same per-frame code as the live loop
+(`appliance.measurement.FrameMeasurer`), on a frame rebuilt from the recorded windows
+(`appliance.frame_windows.paste_windows`) with the recorded controller state and device
+time. Zero commands are applied where they were recorded.
+
+Without an override this reproduces the recorded strain series bit for bit; the summary
+says so with `max_abs_diff_to_recorded` (largest difference of the axial engineering strain:
+0.0 when exact; infinite, null in JSON, when it is NaN on one side only) and
+`samples_differing` (samples in which any recorded quantity differs: strains, elongation,
+gauge length, Poisson's ratio, data-valid flag). With an
+override (`--config FILE`: tables and keys replacing the recorded ones, e.g. another subset
+size or search) the test is measured again; pixels the new tracking needs but the recording
+does not hold read as zero, and `frames_reading_unrecorded_pixels` counts the frames where
+that happened. The points and their marks always come from the recording.
+
+A truncated or corrupted file replays up to the damage; the summary's `damage` says where.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+
+from appliance.config import config_from_table, merge_tables, read_config_table
+from appliance.errors import InputError
+from appliance.frame_windows import paste_windows, uncovered
+from appliance.gauges import Calibration, Gauge, StrainGaugesLayout
+from appliance.loop import LoopResult
+from appliance.measurement import FrameMeasurer, StrainSample
+from appliance.outputs import RunFacts, RunOutput
+from appliance.recording_format import (
+    REFERENCE_ATTACHMENT,
+    STRAIN_FIELDS,
+    FormatError,
+    image_of_png,
+    machine_of,
+    number,
+    window_of,
+)
+from appliance.recording_reader import RecordedSample, RecordingReader, config_table
+from appliance.runner import RunOutcome, build_measurement
+from appliance.summary import RunSummary, SampleRecord
+from appliance.tracking import TrackStatus
+from hal.camera.base import Frame
+
+
+@dataclass(frozen=True)
+class _Setup:
+    facts: RunFacts
+    measurer: FrameMeasurer
+    shape: tuple[int, int]
+    dtype: np.dtype
+
+
+def _setup(reader: RecordingReader, override: Path | None) -> _Setup:
+    reader.check_format()
+    table = config_table(reader)
+    if override is not None:
+        table = merge_tables(table, read_config_table(override))
+    config = config_from_table(table, str(override) if override else f"{reader.path} (config)")
+    start = reader.require("run_start")
+    calibration_meta = reader.require("calibration")
+    marks_meta = reader.require("marks")
+    if REFERENCE_ATTACHMENT not in reader.attachments:
+        raise InputError(f"{reader.path}: the reference frame ({REFERENCE_ATTACHMENT}) is missing")
+    try:
+        reference_image = image_of_png(reader.attachments[REFERENCE_ATTACHMENT])
+        points = np.array(json.loads(marks_meta["points"]), dtype=np.float64)
+        axial = json.loads(marks_meta["axial"])
+        transverse = json.loads(marks_meta["transverse"])
+        layout = StrainGaugesLayout(
+            Gauge(tuple(axial[0]), tuple(axial[1])),
+            None if transverse is None else Gauge(tuple(transverse[0]), tuple(transverse[1])),
+        )
+        calibration = Calibration(float(calibration_meta["scale_mm_per_px"]))
+        reference = Frame(
+            image=reference_image,
+            frame_id=int(start["reference_frame_id"]),
+            timestamp_ns=int(start["reference_timestamp_ns"]),
+            exposure_us=float(start["reference_exposure_us"]),
+        )
+        epoch_offset_ns = int(start["epoch_offset_ns"])
+        recorded_facts = json.loads(start.get("facts", "{}"))
+    except (KeyError, ValueError, TypeError, FormatError) as exc:
+        raise InputError(
+            f"{reader.path}: the recorded run facts are not readable ({exc})"
+        ) from None
+    if points.ndim != 2 or points.shape[1] != 2:
+        raise InputError(f"{reader.path}: the recorded points are not an (n, 2) array")
+    try:
+        tracker, gauges = build_measurement(config, reference_image, points, layout, calibration)
+    except ValueError as exc:
+        raise InputError(f"{reader.path}: the recorded marks cannot be tracked ({exc})") from None
+    facts = RunFacts(
+        config=config,
+        reference=reference,
+        points=points,
+        marks=tuple(tuple(m) for m in json.loads(marks_meta["marks"])),
+        layout=layout,
+        calibration=calibration,
+        gauge_length_mm=gauges.gauge_length_mm,
+        epoch_offset_ns=epoch_offset_ns,
+        devices=dict(reader.meta("devices") or {}),
+        facts=recorded_facts,
+    )
+    measurer = FrameMeasurer(tracker, gauges, reference.timestamp_ns)
+    return _Setup(facts, measurer, reference_image.shape, reference_image.dtype)
+
+
+def _frame_of(setup: _Setup, recorded: RecordedSample, path: Path):
+    points = recorded.points
+    try:
+        windows = [
+            window_of(recorded.windows[int(place["mark"])], place) for place in points["windows"]
+        ]
+        image = paste_windows(setup.shape, setup.dtype, windows)
+        frame = Frame(
+            image=image,
+            frame_id=int(points["frame_id"]),
+            timestamp_ns=int(points["timestamp_ns"]),
+            exposure_us=number(points["exposure_us"]),
+        )
+        machine = machine_of(recorded.machine) if recorded.machine is not None else None
+    except (KeyError, ValueError, TypeError, FormatError) as exc:
+        raise InputError(f"{path}: sample {recorded.index} is not readable ({exc})") from None
+    return frame, machine, windows
+
+
+def _same(mine: float, theirs: float) -> bool:
+    return mine == theirs or (math.isnan(mine) and math.isnan(theirs))
+
+
+def _compare(sample: StrainSample, recorded: dict[str, Any]) -> tuple[float, bool]:
+    """(|engineering strain - recorded|, whether any recorded quantity differs)."""
+    differs = bool(recorded.get("data_valid")) != sample.data_valid
+    for name in STRAIN_FIELDS:
+        differs |= not _same(float(getattr(sample.reading, name)), number(recorded.get(name)))
+    mine = sample.reading.engineering_strain
+    theirs = number(recorded.get("engineering_strain"))
+    if _same(mine, theirs):
+        return 0.0, differs
+    return abs(mine - theirs) if math.isfinite(mine - theirs) else math.inf, differs
+
+
+def replay_recording(
+    path: str | Path,
+    *,
+    override: Path | None = None,
+    outputs: Sequence[RunOutput] = (),
+    progress: TextIO | None = None,
+) -> RunOutcome:
+    """Measure a recording again; see the module docstring.
+
+    Args:
+        path: the recording.
+        override: a TOML file whose tables and keys replace the recorded configuration's.
+        outputs: outputs following the replay as they would a live test (a viewer).
+        progress: a terminal stream for a progress line; None = quiet.
+
+    Raises:
+        InputError: the file is not a readable recording, or the override is bad.
+    """
+    path = Path(path)
+    reader = RecordingReader(path)
+    try:
+        return _replay(reader, override, outputs, progress)
+    finally:
+        reader.close()
+
+
+def _replay(
+    reader: RecordingReader,
+    override: Path | None,
+    outputs: Sequence[RunOutput],
+    progress: TextIO | None,
+) -> RunOutcome:
+    setup: _Setup | None = None
+    records: list[SampleRecord] = []
+    latencies: list[float] = []
+    tracking_time = 0.0
+    worst = 0.0
+    differing = 0
+    unrecorded = 0
+    samples = reader.samples()
+    for recorded in samples:
+        if setup is None:
+            setup = _setup(reader, override)
+            for output in outputs:
+                output.begin(setup.facts)
+        frame, machine, windows = _frame_of(setup, recorded, reader.path)
+        if recorded.points.get("zeroed"):
+            setup.measurer.zero()
+        started = time.perf_counter()
+        sample = setup.measurer.measure(frame, machine, started)
+        tracking_time += time.perf_counter() - started
+        latencies.append(sample.latency_s)
+        if uncovered([w.region for w in sample.windows], windows):
+            unrecorded += 1
+        difference, differs = _compare(sample, recorded.strain)
+        worst = max(worst, difference)
+        differing += differs
+        truth = recorded.truth or {}
+        records.append(
+            SampleRecord(
+                strain=sample.reading.engineering_strain,
+                elongation_mm=sample.reading.elongation_mm,
+                valid=sample.data_valid,
+                points_lost=int((sample.status == TrackStatus.LOST).sum()),
+                reference_updates=sample.reference_updates,
+                true_strain=number(truth.get("true_engineering_strain")),
+                true_elongation_mm=number(truth.get("true_elongation_mm")),
+            )
+        )
+        for output in outputs:
+            output(sample)
+        if progress is not None:
+            progress.write(
+                f"\r  sample {sample.index:6d}  strain "
+                f"{sample.reading.engineering_strain * 100:9.3f} %"
+            )
+            progress.flush()
+    if progress is not None:
+        progress.write("\n")
+    if setup is None:
+        _setup(reader, override)
+    stop = reader.meta("run_stop") or {}
+    damage = reader.damage
+    result = LoopResult(
+        exit_status="damaged" if damage else "completed",
+        reason=damage.describe() if damage else "every recorded sample measured",
+        frames_processed=len(records),
+        frames_dropped=int(stop.get("frames_dropped", 0)),
+        latencies_s=latencies,
+        tracking_time_s=tracking_time,
+    )
+    for output in outputs:
+        output.end(result)
+    recorded_facts = setup.facts.facts if setup is not None else {}
+    extra = {
+        **{k: v for k, v in recorded_facts.items() if k != "test_id"},
+        "recording": str(reader.path),
+        "override": str(override) if override is not None else None,
+        "recorded_exit_status": stop.get("exit_status"),
+        "recorded_reason": stop.get("reason"),
+        "max_abs_diff_to_recorded": worst if records else None,
+        "samples_differing": differing,
+        "frames_reading_unrecorded_pixels": unrecorded,
+        "damage": damage.describe() if damage else None,
+    }
+    return RunOutcome(RunSummary.from_run(result, records), extra)
+
+
+def is_exact(outcome: RunOutcome) -> bool:
+    """Whether a replay measured every recorded sample again to the same numbers."""
+    return outcome.extra.get("samples_differing") == 0 and outcome.extra.get("damage") is None
