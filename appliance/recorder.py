@@ -117,14 +117,18 @@ class McapRecorder:
         except OSError as exc:
             raise InputError(f"{self.path}: cannot create the recording ({exc.strerror})") from None
         self._writer = Writer(
-            self._file,
+            _Counted(self._file),
             chunk_size=config.chunk_size_kb * 1024,
             compression=CompressionType.ZSTD,
             enable_crcs=True,
             enable_data_crcs=True,
         )
-        self._writer.start(profile=PROFILE, library=f"extensometer {__version__}")
-        self._sync = config.fsync and stat.S_ISREG(os.fstat(self._file.fileno()).st_mode)
+        try:
+            self._writer.start(profile=PROFILE, library=f"extensometer {__version__}")
+            self._sync = config.fsync and stat.S_ISREG(os.fstat(self._file.fileno()).st_mode)
+        except OSError as exc:
+            self._file.close()
+            raise InputError(f"{self.path}: cannot write the recording ({exc.strerror})") from None
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self._queue: queue.Queue = queue.Queue()
@@ -431,6 +435,29 @@ class McapRecorder:
                 self._backlog_changed.notify_all()
         finally:
             self._file.close()
+
+
+class _Counted:
+    """A binary stream whose `tell` counts the bytes written (the MCAP writer asks for
+    offsets, which a pipe cannot give)."""
+
+    def __init__(self, stream: BinaryIO) -> None:
+        self._stream = stream
+        self._written = 0
+
+    def write(self, data) -> int:
+        view = memoryview(data)
+        while view:
+            done = self._stream.write(view)
+            view = view[done if done is not None else len(view) :]
+        self._written += len(data)
+        return len(data)
+
+    def tell(self) -> int:
+        return self._written
+
+    def flush(self) -> None:
+        self._stream.flush()
 
 
 def _jsonable(value: Any) -> Any:
