@@ -6,6 +6,7 @@ Subcommands:
     plan    motion blur of an exposure, and the exposure and frame period for a blur budget.
     run     a tensile test: measure strain until a strain limit or the break (`--sim`: the
             simulated test, with its ground truth and errors in the summary).
+    serve   run as a service: a test per start command, Modbus, Rerun, systemd watchdog.
     replay  measure a recorded test again from its recorded pixels.
     info    summarise a recording and check its integrity.
 
@@ -131,6 +132,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     simulated.add_argument("--out", required=True, metavar="DIR", help="report directory")
     simulated.add_argument("--quick", action="store_true", help="shortened tests")
+    modbus = benches.add_parser(
+        "modbus", help="latency from frame delivery to Modbus register update (10 points)"
+    )
+    modbus.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    modbus.add_argument("--out", metavar="FILE", help="also write the JSON to FILE")
 
     _add_plan_parser(commands)
     _add_run_parser(commands)
@@ -166,7 +172,30 @@ def _add_run_parser(commands) -> None:
     run.add_argument(
         "--record", type=Path, metavar="FILE.mcap", help="record the test to a new MCAP file"
     )
+    _add_modbus_options(run)
+    _add_rerun_options(run)
     run.add_argument("--json", action="store_true", help="print the summary as JSON, quietly")
+
+    serve = commands.add_parser(
+        "serve",
+        help="run as a service: tests on the controller's command, Modbus, Rerun, watchdog",
+        description=(
+            "Run the appliance as a long-running service (systemd Type=notify): start the "
+            "Modbus strain server and the Rerun server, then run one test per start command "
+            '(or one at once with [service] start = "auto"), recording each to a new MCAP '
+            "file in the state directory. SIGTERM ends the running test cleanly."
+        ),
+    )
+    serve.add_argument("--config", type=Path, help="TOML configuration file (default: defaults)")
+    serve.add_argument(
+        "--record",
+        type=Path,
+        metavar="FILE.mcap",
+        help="the first test's recording (later ones: FILE-2.mcap, ...; default: "
+        "timestamped files in the state directory)",
+    )
+    _add_modbus_options(serve)
+    _add_rerun_options(serve)
 
     replay = commands.add_parser(
         "replay",
@@ -183,6 +212,7 @@ def _add_run_parser(commands) -> None:
     replay.add_argument(
         "--config", type=Path, metavar="OVERRIDE", help="TOML tables replacing recorded keys"
     )
+    _add_rerun_options(replay)
     replay.add_argument("--json", action="store_true", help="print the summary as JSON, quietly")
 
     info = commands.add_parser(
@@ -197,12 +227,66 @@ def _add_run_parser(commands) -> None:
     info.add_argument("--json", action="store_true", help="print JSON on stdout")
 
 
+def _add_modbus_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--modbus-tcp", metavar="HOST:PORT", help="serve strain on Modbus TCP ([modbus] tcp)"
+    )
+    parser.add_argument(
+        "--modbus-rtu", metavar="DEVICE", help="serve strain on Modbus RTU ([modbus] rtu_device)"
+    )
+
+
+def _add_rerun_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--rerun-serve", metavar="HOST:PORT", help="gRPC server for Rerun viewers ([rerun] serve)"
+    )
+    parser.add_argument(
+        "--rerun-connect", metavar="URL", help="push to a Rerun viewer at URL ([rerun] connect)"
+    )
+    parser.add_argument("--rerun-save", metavar="FILE.rrd", help="save an .rrd ([rerun] save)")
+
+
+def _with_live_options(config, args: argparse.Namespace):
+    """`config` with the --modbus-* and --rerun-* options applied (validated like the file)."""
+    from appliance.config import config_from_table, config_to_table, merge_tables
+
+    table = config_to_table(config)
+    for option, section, key in (
+        ("modbus_tcp", "modbus", "tcp"),
+        ("modbus_rtu", "modbus", "rtu_device"),
+        ("rerun_serve", "rerun", "serve"),
+        ("rerun_connect", "rerun", "connect"),
+        ("rerun_save", "rerun", "save"),
+    ):
+        value = getattr(args, option, None)
+        if value is None:
+            continue
+        table = merge_tables(table, {section: {key: value}})
+        where = f"[{section}] {key}: "
+        try:
+            config = config_from_table(table, "--" + option.replace("_", "-"))
+        except InputError as error:
+            raise InputError(str(error).replace(where, "", 1)) from None
+    return config
+
+
+def _viewer(config):
+    """The Rerun viewer the configuration asks for, or None."""
+    rerun = config.rerun
+    if not (rerun.serve or rerun.connect or rerun.save):
+        return None
+    from appliance.viewer import RerunViewer
+
+    return RerunViewer(rerun)
+
+
 def _run_config(args: argparse.Namespace):
     import dataclasses
 
     from appliance.config import Config, load_config
 
     config = load_config(args.config) if args.config else Config()
+    config = _with_live_options(config, args)
     run_table = config.run
     if args.speed_mm_min is not None:
         run_table = dataclasses.replace(run_table, speed_mm_min=args.speed_mm_min)
@@ -226,23 +310,29 @@ def _run_config(args: argparse.Namespace):
 
 
 def _run(args: argparse.Namespace) -> int:
+    from appliance.live_link import LiveLink
     from appliance.runner import print_summary, run_test
     from hal.errors import HardwareError
 
     config = _run_config(args)
     progress = None if args.json or not sys.stderr.isatty() else sys.stderr
+    link = LiveLink(config, viewer=_viewer(config))
     try:
+        link.start()
         outcome = run_test(
             config,
             simulate=args.sim,
             out_dir=args.out,
             progress=progress,
             record_path=args.record,
+            **link.run_arguments(),
         )
     except HardwareError as error:
         raise InputError(f"run: {error}") from None
     except OSError as error:
         raise InputError(f"run: {error.filename or ''}: {error.strerror}") from None
+    finally:
+        link.close()
     if args.json:
         print(outcome.to_json())
     else:
@@ -250,12 +340,36 @@ def _run(args: argparse.Namespace) -> int:
     return 0 if outcome.summary.exit_status in ("completed", "break") else 1
 
 
+def _serve(args: argparse.Namespace) -> int:
+    from appliance.config import Config, load_config
+    from appliance.sd_notify import ServiceNotifier
+    from appliance.service import Service
+
+    config = load_config(args.config) if args.config else Config()
+    config = _with_live_options(config, args)
+    with ServiceNotifier() as notifier:
+        return Service(
+            config, record_path=args.record, notifier=notifier, viewer=_viewer(config)
+        ).run()
+
+
 def _replay(args: argparse.Namespace) -> int:
+    from appliance.config import Config
     from appliance.replay import is_exact, replay_recording
     from appliance.runner import print_summary
 
     progress = None if args.json or not sys.stderr.isatty() else sys.stderr
-    outcome = replay_recording(args.recording, override=args.config, progress=progress)
+    viewer = _viewer(_with_live_options(Config(), args))
+    outputs = [viewer] if viewer is not None else []
+    for output in outputs:
+        output.start()
+    try:
+        outcome = replay_recording(
+            args.recording, override=args.config, outputs=outputs, progress=progress
+        )
+    finally:
+        for output in outputs:
+            output.close()
     if args.json:
         print(outcome.to_json())
     else:
@@ -547,6 +661,10 @@ def _bench(args: argparse.Namespace) -> int:
         from appliance.bench.accuracy import run_accuracy_benchmark
 
         return run_accuracy_benchmark(Path(args.out), quick=args.quick)
+    if args.bench == "modbus":
+        from appliance.bench.modbus import run_modbus_benchmark
+
+        return run_modbus_benchmark(Path(args.out) if args.out else None, args.json)
     if args.bench == "sim":
         from appliance.bench.simulated import run_simulated_benchmark
 
@@ -568,6 +686,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _run(args)
         if args.command == "replay":
             return _replay(args)
+        if args.command == "serve":
+            return _serve(args)
         if args.command == "info":
             return _info(args)
         return _bench(args)

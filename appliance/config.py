@@ -117,7 +117,11 @@ class RunConfig:
 
 @dataclass(frozen=True)
 class SimConfig:
-    """[sim]: the simulated world (used by sim:// devices only)."""
+    """[sim]: the simulated world (used by sim:// devices only).
+
+    `camera_hang_after_s` > 0 makes the simulated camera hang that long after the start of a
+    test, as a hung driver would (fault injection for the watchdog); 0 = never.
+    """
 
     material: str = field(default="rubber", metadata={"choices": ("rubber", "metal")})
     seed: int = field(default=1, metadata=_range(0, 2**31 - 1))
@@ -126,6 +130,7 @@ class SimConfig:
     sensor_height_px: int | None = field(default=None, metadata=_range(64, 16384))
     read_noise_grey: float = field(default=0.5, metadata=_range(0.0, 50.0))
     electrons_per_grey: float = field(default=40.0, metadata=_range(0.0, 1e6))
+    camera_hang_after_s: float = field(default=0.0, metadata=_range(0.0, 1e6))
 
 
 @dataclass(frozen=True)

@@ -38,7 +38,7 @@ from appliance.measurement import BreakDetection, FrameMeasurer, StopCriteria, S
 from appliance.run_state import RunEvent, RunState, RunStateMachine
 from appliance.tracking import MarkTracker
 from hal.camera.base import Camera, Frame
-from hal.errors import HardwareError
+from hal.errors import HardwareError, HardwareTimeout
 from hal.frame.base import TensileFrame
 
 
@@ -161,15 +161,39 @@ class MeasurementLoop:
         for thread in threads:
             thread.start()
         try:
-            while any(t.is_alive() for t in threads):
-                for thread in threads:
-                    thread.join(timeout=0.1)
+            self._wait(threads)
         except KeyboardInterrupt:
             self._finish("aborted", "interrupted by the operator")
-            for thread in threads:
-                thread.join()
+            self._wait(threads)
         self._shut_down()
         return self._result
+
+    def _wait(self, threads: list[threading.Thread]) -> None:
+        """Wait for the threads; after a stop, give up on an acquisition thread whose fetch
+        does not return (a hung driver), so the test still ends and its outputs close."""
+        acquisition = threads[0]
+        grace_s = 2 * self.fetch_timeout_s + 1.0
+        stopped_at: float | None = None
+        while any(t.is_alive() for t in threads):
+            for thread in threads:
+                thread.join(timeout=0.1)
+            if not self._stop.is_set() or not acquisition.is_alive():
+                continue
+            stopped_at = stopped_at if stopped_at is not None else time.monotonic()
+            if time.monotonic() - stopped_at > grace_s:
+                self._errors.append(
+                    (
+                        "acquisition",
+                        HardwareTimeout(
+                            f"{self.camera.url}: fetch did not return within {grace_s:g} s "
+                            "of the stop"
+                        ),
+                    )
+                )
+                self._put(self._frames, _END, force=True)
+                for thread in threads[1:]:
+                    thread.join()
+                return
 
     def _fail_before_start(self, exc: BaseException) -> LoopResult:
         self._result.exit_status = "fault"

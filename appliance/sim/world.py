@@ -102,6 +102,8 @@ class SimWorld:
         pace: FAST or REAL_TIME.
         seed: seed of the speckle coat and of the camera noise.
         read_noise, electrons_per_grey: camera noise (see `hal.camera.sim.SimCamera`).
+        camera_hang_after_s: simulation time from which the camera hangs (fault injection,
+            see `hal.camera.sim.SimCamera`); None = never.
     """
 
     def __init__(
@@ -116,6 +118,7 @@ class SimWorld:
         seed: int = 1,
         read_noise: float = 0.5,
         electrons_per_grey: float = 40.0,
+        camera_hang_after_s: float | None = None,
     ) -> None:
         self.preset = preset
         self.specimen = preset.specimen()
@@ -157,6 +160,7 @@ class SimWorld:
             seed=seed,
             read_noise=read_noise,
             electrons_per_grey=electrons_per_grey,
+            hang_after_s=camera_hang_after_s,
         )
         self.frame = frame_from_url("sim://frame", machine=self.machine, clock=self.clock)
 
@@ -177,6 +181,7 @@ class SimWorld:
             seed=config.sim.seed,
             read_noise=config.sim.read_noise_grey,
             electrons_per_grey=config.sim.electrons_per_grey,
+            camera_hang_after_s=config.sim.camera_hang_after_s or None,
         )
 
     @property

@@ -10,6 +10,11 @@ the signal; Gaussian read noise and Poisson shot noise; quantisation to Mono8 or
 with clipping; the sensor region; frame ids and device timestamps (start of exposure, ns, from
 the simulation clock).
 
+Fault injection: `hang_after_s` makes the camera stop answering from that simulation time
+on, as a hung driver does: `fetch` blocks, ignoring its timeout, until the camera is disarmed
+or closed, then raises `HardwareConnectError`. It exists to prove that the service's watchdog
+catches a measurement that stalls.
+
 What it does not model: lens distortion, vignetting, rolling shutter, dark current and fixed
 pattern noise, dropped or corrupted frames, transport latency or bandwidth limits, trigger
 jitter (edges are exact), or readout time limiting the frame rate.
@@ -19,6 +24,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import threading
 from typing import Any
 
 import numpy as np
@@ -33,7 +39,7 @@ from hal.camera.base import (
     TriggerMode,
 )
 from hal.clock import SimClock
-from hal.errors import HardwareConfigError, HardwareTimeout
+from hal.errors import HardwareConfigError, HardwareConnectError, HardwareTimeout
 
 
 class SimCamera:
@@ -47,6 +53,8 @@ class SimCamera:
         read_noise: standard deviation of the read noise, grey levels on the 8-bit scale.
         electrons_per_grey: conversion gain for shot noise at unit gain (8-bit scale); 0 =
             no shot noise.
+        hang_after_s: simulation time from which the camera hangs (see the module
+            docstring); None = never.
     """
 
     def __init__(
@@ -58,6 +66,7 @@ class SimCamera:
         seed: int = 0,
         read_noise: float = 0.5,
         electrons_per_grey: float = 40.0,
+        hang_after_s: float | None = None,
         **_: Any,
     ) -> None:
         self.url = url
@@ -74,6 +83,8 @@ class SimCamera:
         self._next_internal_s = 0.0
         self._delivered = 0
         self._frame_id = 0
+        self._hang_after_s = hang_after_s
+        self._released = threading.Event()
 
     @property
     def sensor_size(self) -> tuple[int, int]:
@@ -86,6 +97,7 @@ class SimCamera:
     def close(self) -> None:
         self._armed = False
         self._open = False
+        self._released.set()
 
     def configure(self, settings: CameraSettings) -> CameraSettings:
         if self._armed:
@@ -110,6 +122,7 @@ class SimCamera:
         if not self._open:
             raise HardwareConfigError(f"{self.url}: arm before open")
         self._armed = True
+        self._released.clear()
         self._pending.clear()
         self._delivered = 0
         self._next_internal_s = self._clock.now_s()
@@ -117,6 +130,7 @@ class SimCamera:
     def disarm(self) -> None:
         self._armed = False
         self._pending.clear()
+        self._released.set()
 
     def trigger(self) -> None:
         if self._trigger.mode is not TriggerMode.SOFTWARE:
@@ -136,6 +150,9 @@ class SimCamera:
         if self._trigger.frames and self._delivered >= self._trigger.frames:
             raise HardwareTimeout(f"{self.url}: all {self._trigger.frames} frames delivered")
         start = self._next_start(timeout_s)
+        if self._hang_after_s is not None and start >= self._hang_after_s:
+            self._released.wait()
+            raise HardwareConnectError(f"{self.url}: the camera stopped answering")
         exposure_s = self._settings.exposure_us * 1e-6
         self._clock.wait_until(start + exposure_s)
         region = self._settings.region or Region(0, 0, *self.sensor_size)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Mapping
 from typing import Any
 
@@ -123,3 +124,32 @@ def test_frame_limit_and_sink_failure():
     loop = MeasurementLoop(_camera(StretchingScene()), None, _setup, block_when_full=True)
     result = loop.run(StopCriteria(until_break=False, max_frames=3))
     assert result.exit_status == "completed" and result.frames_processed == 3
+
+
+def test_a_hung_camera_stops_the_samples_and_a_stop_still_ends_the_run():
+    camera = SimCamera(
+        "sim://camera",
+        scene=StretchingScene(),
+        clock=SimClock(),
+        read_noise=0.0,
+        electrons_per_grey=0.0,
+        hang_after_s=0.45,
+    )
+    camera.open()
+    camera.prepare(TriggerInfo(mode=TriggerMode.INTERNAL, rate_hz=10.0, exposure_us=100.0))
+    samples = []
+    loop = MeasurementLoop(
+        camera,
+        None,
+        _setup,
+        sinks=[samples.append],
+        block_when_full=True,
+        fetch_timeout_s=0.2,
+    )
+    stopper = threading.Timer(1.5, loop.request_stop, args=("operator stop",))
+    stopper.start()
+    result = loop.run(StopCriteria(until_break=False))
+    stopper.join()
+    assert len(samples) == result.frames_processed == 4
+    assert result.exit_status == "fault" and result.final_state is RunState.FAULT
+    assert "fetch did not return" in result.reason

@@ -1,0 +1,161 @@
+"""The live connections of a running test: Modbus registers, viewer, watchdog and commands.
+
+`LiveLink` ties a test run by `appliance.runner.run_test` to what watches and drives it from
+outside, for `extensometer run` (one test) and `extensometer serve` (one test after another):
+
+* the Modbus strain server (`appliance.modbus_server`): registers written on the measurement
+  thread with every frame, the run state mirrored in the status bits, and the controller's
+  commands (stop and zero act on the running test; start and the gauge length set point are
+  the caller's to decide, through `on_start` and `on_gauge_length`);
+* the viewer (`appliance.viewer`), an output of every test;
+* the service manager's watchdog, pinged from the measurement thread with every frame.
+
+`run_arguments()` gives the keyword arguments of `run_test` that connect a test.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections.abc import Callable
+from typing import Any
+
+from appliance.config import Config
+from appliance.loop import LoopResult, MeasurementLoop
+from appliance.measurement import StrainSample
+from appliance.modbus_server import StrainRegisterServer
+from appliance.outputs import RunFacts, RunOutput
+from appliance.run_state import RunState, Transition
+from appliance.sd_notify import ServiceNotifier
+
+
+class LiveLink:
+    """Connections shared by the tests of one process.
+
+    Args:
+        config: the configuration ([modbus] chooses the servers).
+        notifier: the service manager's notifier (None = no watchdog).
+        viewer: an output following every test (a Rerun viewer), or None.
+        on_start: decides a start command (called on the Modbus thread); None = refused.
+        on_gauge_length: takes a gauge length set point, mm; None = refused.
+        on_transition: called at every change of the run state, after the registers.
+    """
+
+    def __init__(
+        self,
+        config: Config,
+        *,
+        notifier: ServiceNotifier | None = None,
+        viewer: RunOutput | None = None,
+        on_start: Callable[[], bool] | None = None,
+        on_gauge_length: Callable[[float], bool] | None = None,
+        on_transition: Callable[[Transition], None] | None = None,
+    ) -> None:
+        self.notifier = notifier
+        self.viewer = viewer
+        self._on_start = on_start
+        self._on_gauge_length = on_gauge_length
+        self._on_transition = on_transition
+        self._lock = threading.Lock()
+        self._loop: MeasurementLoop | None = None
+        self._facts: RunFacts | None = None
+        self.state = RunState.IDLE
+        self.modbus = StrainRegisterServer(
+            config.modbus,
+            self._on_command,
+            gauge_length_setpoint_mm=config.gauge.length_mm or math.nan,
+        )
+
+    def start(self) -> None:
+        """Start the servers (Modbus, the viewer's). Raises InputError naming the key."""
+        self.modbus.start()
+        start = getattr(self.viewer, "start", None)
+        if callable(start):
+            start()
+
+    def close(self) -> None:
+        """Stop the servers; idempotent."""
+        self.modbus.close()
+        close = getattr(self.viewer, "close", None)
+        if callable(close):
+            close()
+
+    def request_stop(self, reason: str) -> bool:
+        """Stop the running test, if any; whether one was running."""
+        with self._lock:
+            loop = self._loop
+        if loop is None:
+            return False
+        loop.request_stop(reason)
+        return True
+
+    def run_arguments(self) -> dict[str, Any]:
+        """Keyword arguments of `run_test` connecting a test to the link."""
+        outputs: list[RunOutput] = [_FactsTap(self)]
+        if self.viewer is not None:
+            outputs.append(self.viewer)
+        return {
+            "outputs": outputs,
+            "immediate_sinks": [self._on_sample],
+            "on_transition": self._transition,
+            "on_loop": self._attach,
+        }
+
+    def _attach(self, loop: MeasurementLoop) -> None:
+        with self._lock:
+            self._loop = loop
+
+    def _detach(self) -> None:
+        with self._lock:
+            self._loop = None
+            self._facts = None
+
+    def _on_sample(self, sample: StrainSample) -> None:
+        self.modbus.publish(sample, self._facts)
+        if self.notifier is not None:
+            self.notifier.watchdog()
+
+    def _transition(self, transition: Transition) -> None:
+        with self._lock:
+            self.state = transition.target
+        self.modbus.set_run_state(transition.target)
+        if self._on_transition is not None:
+            self._on_transition(transition)
+
+    def _on_command(self, command: str, value: float | None) -> bool:
+        with self._lock:
+            loop, running = self._loop, self.state is RunState.RUNNING
+        if command == "stop":
+            if loop is None or not running:
+                return False
+            loop.request_stop("stop command")
+            return True
+        if command == "zero":
+            if loop is None or not running:
+                return False
+            loop.request_zero()
+            return True
+        if command == "start":
+            return self._on_start() if self._on_start is not None else False
+        if command == "gauge_length" and value is not None and self._on_gauge_length:
+            if not self._on_gauge_length(value):
+                return False
+            self.modbus.set_gauge_length_setpoint(value)
+            return True
+        return False
+
+
+class _FactsTap:
+    """The output that lets the link know the running test's facts (for register times)."""
+
+    def __init__(self, link: LiveLink) -> None:
+        self._link = link
+
+    def begin(self, facts: RunFacts) -> None:
+        self._link._facts = facts
+
+    def __call__(self, sample: StrainSample) -> None:
+        pass
+
+    def end(self, result: LoopResult) -> None:
+        self._link._detach()

@@ -1,0 +1,509 @@
+"""The Modbus register map of the strain server, defined once as data.
+
+`REGISTER_MAP` is the whole map: one `Register` per value (name, zero-based address, register
+count, data type, access, unit, description, accepted values of a writable one). The server
+(`appliance.modbus_server`) builds its register image and its write checks from it, the README
+table is rendered from it (`render_markdown_table`), and the tests compare the two.
+
+Conventions the map follows:
+
+* Every register is a holding register (function 3) and, at the same address, an input
+  register (function 4); both read the same image. Addresses are zero-based (PDU addresses;
+  a tool that counts from 1 adds 1).
+* float32, uint32 and uint64 values take 2, 2 and 4 registers in the configured word order:
+  `big` puts the most significant word first (ABCD for a float), `little` the least
+  significant first (CDAB). Bytes within a register are always big-endian, as Modbus says.
+* uint16 values are the register itself; counters wrap to 0 after their largest value.
+* The reserved block between the measurement block and the command block reads 0 and refuses
+  writes, so a controller can read addresses 0 ... 104 in one request (105 <= 125 registers).
+* A read may start or end in the middle of a multi-register value (it is a plain register
+  read); a write must cover every writable value it touches completely.
+
+Exception codes a client gets:
+
+* 1 (illegal function): a write from a TCP client not in `[modbus] allow_write_from` (when
+  the list is not empty), or any write over RTU when the list is not empty (a serial line has
+  no client address to check).
+* 2 (illegal data address): an address outside the map, a write to a read-only register
+  (reserved ones included), or a write that covers only part of a float (writing 103 alone).
+* 3 (illegal data value): a command code not listed, a gauge length set point that is NaN,
+  infinite or outside 1 ... 10000 mm.
+* 4 (server device failure): the appliance failed while handling a command.
+
+What this module does not do: it holds no state and talks to no network; it does not know
+how the service reacts to a command (that is the server's `on_command` callback).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+from pymodbus.client.mixin import ModbusClientMixin
+
+from appliance.run_state import RunState
+
+WordOrder = Literal["big", "little"]
+Value = int | float
+
+_DATATYPE = ModbusClientMixin.DATATYPE
+
+
+class RegisterType(enum.Enum):
+    """Data type of a register entry: (label, pymodbus converter type, registers per value).
+
+    RESERVED has no value: its registers read 0 and its count is free.
+    """
+
+    UINT16 = ("uint16", _DATATYPE.UINT16, 1)
+    UINT32 = ("uint32", _DATATYPE.UINT32, 2)
+    UINT64 = ("uint64", _DATATYPE.UINT64, 4)
+    FLOAT32 = ("float32", _DATATYPE.FLOAT32, 2)
+    RESERVED = ("reserved", None, None)
+
+    @property
+    def label(self) -> str:
+        """Name of the type in the table."""
+        return self.value[0]
+
+    @property
+    def converter(self) -> ModbusClientMixin.DATATYPE | None:
+        """pymodbus' converter type (None for RESERVED)."""
+        return self.value[1]
+
+    @property
+    def registers(self) -> int | None:
+        """Registers one value takes (None for RESERVED)."""
+        return self.value[2]
+
+
+class Access(enum.Enum):
+    """What a client may do with a register."""
+
+    READ = "r"
+    READ_WRITE = "rw"
+
+
+@dataclass(frozen=True)
+class Register:
+    """One entry of the map.
+
+    Attributes:
+        name: identifier of the value (snake_case, unit in the name where it has one).
+        address: zero-based address of its first register.
+        count: registers it takes.
+        data_type: how its registers encode the value.
+        access: read-only or writable.
+        unit: unit of the value ("1" for a ratio, "" for a code, bits or counter).
+        description: what it is, one sentence or a list of codes.
+        minimum, maximum: accepted range of a writable float (None = not a range).
+        choices: accepted values of a writable code (empty = not a code).
+    """
+
+    name: str
+    address: int
+    count: int
+    data_type: RegisterType
+    access: Access
+    unit: str
+    description: str
+    minimum: float | None = None
+    maximum: float | None = None
+    choices: tuple[int, ...] = ()
+
+    def __post_init__(self) -> None:
+        size = self.data_type.registers
+        if size is not None and self.count != size:
+            raise ValueError(f"{self.name}: {self.data_type.label} takes {size} registers")
+        if not (0 <= self.address and self.address + self.count <= 0x10000 and self.count > 0):
+            raise ValueError(f"{self.name}: address range outside 0 ... 65535")
+        if self.access is Access.READ_WRITE and not (
+            self.choices or (self.minimum is not None and self.maximum is not None)
+        ):
+            raise ValueError(f"{self.name}: a writable register needs choices or a range")
+
+    @property
+    def end(self) -> int:
+        """One past its last register."""
+        return self.address + self.count
+
+    @property
+    def writable(self) -> bool:
+        """A client may write it."""
+        return self.access is Access.READ_WRITE
+
+    def accepts(self, value: Value) -> bool:
+        """Whether a decoded value written by a client is in the accepted set or range."""
+        if self.choices:
+            return value in self.choices
+        if self.minimum is None or self.maximum is None:
+            return False
+        return math.isfinite(value) and self.minimum <= value <= self.maximum
+
+
+class StatusBit(enum.IntFlag):
+    """Bits of the `status` register."""
+
+    DATA_VALID = 1 << 0
+    TRACKING = 1 << 1
+    POINT_LOST = 1 << 2
+    REFERENCE_UPDATED = 1 << 3
+    CALIBRATING = 1 << 4
+    FAULT = 1 << 5
+
+
+STATUS_BIT_MEANINGS: tuple[tuple[StatusBit, str], ...] = (
+    (
+        StatusBit.DATA_VALID,
+        "data valid (the latest sample is valid and the run is running or stopping; any other "
+        "run state clears it, so a stale strain is never flagged valid)",
+    ),
+    (StatusBit.TRACKING, "tracking (run state running)"),
+    (StatusBit.POINT_LOST, "point lost (a point was lost in the latest sample)"),
+    (StatusBit.REFERENCE_UPDATED, "reference updated (in the latest sample)"),
+    (StatusBit.CALIBRATING, "calibrating (run state armed: taking the reference)"),
+    (StatusBit.FAULT, "fault (run state fault)"),
+)
+
+RUN_STATE_CODES: Mapping[RunState, int] = {
+    RunState.IDLE: 0,
+    RunState.ARMED: 1,
+    RunState.RUNNING: 2,
+    RunState.STOPPING: 3,
+    RunState.ABORTED: 4,
+    RunState.FAULT: 5,
+}
+"""Run state -> code of the `run_state` register."""
+
+COMMANDS: Mapping[int, str] = {1: "start", 2: "stop", 3: "zero"}
+"""Code written to `command` -> the command handed to the server's `on_command`."""
+
+GAUGE_LENGTH_COMMAND = "gauge_length"
+"""The command handed to `on_command` (with the value) when the set point is written."""
+
+
+class CommandResult(enum.IntEnum):
+    """Codes of the `command_result` register."""
+
+    NONE = 0
+    ACCEPTED = 1
+    REFUSED = 2
+
+
+COMMAND_RESULT_MEANINGS: Mapping[CommandResult, str] = {
+    CommandResult.NONE: "none yet",
+    CommandResult.ACCEPTED: "accepted",
+    CommandResult.REFUSED: "refused in the current run state",
+}
+
+
+def _codes(pairs: Sequence[tuple[int, str]]) -> str:
+    return ", ".join(f"{code} {text}" for code, text in pairs)
+
+
+_STATUS_TEXT = "Bits: " + "; ".join(
+    f"{bit.bit_length() - 1} {text}" for bit, text in STATUS_BIT_MEANINGS
+)
+_RUN_STATE_TEXT = "Run state: " + _codes([(c, s.value) for s, c in RUN_STATE_CODES.items()])
+_COMMAND_TEXT = (
+    "Write "
+    + _codes(list(COMMANDS.items()))
+    + " (zero: strain becomes 0 at the next frame); other values: exception 3. "
+    "Reads the last command code written (0 none yet)"
+)
+_RESULT_TEXT = "Result of the last command or set point write: " + _codes(
+    [(int(r), t) for r, t in COMMAND_RESULT_MEANINGS.items()]
+)
+
+REGISTER_MAP: tuple[Register, ...] = (
+    Register(
+        "axial_strain",
+        0,
+        2,
+        RegisterType.FLOAT32,
+        Access.READ,
+        "1",
+        "Axial engineering strain (L - L0) / L0 of the latest sample (1 = 100 %)",
+    ),
+    Register(
+        "transverse_strain",
+        2,
+        2,
+        RegisterType.FLOAT32,
+        Access.READ,
+        "1",
+        "Transverse engineering strain (NaN without a transverse gauge)",
+    ),
+    Register(
+        "true_strain",
+        4,
+        2,
+        RegisterType.FLOAT32,
+        Access.READ,
+        "1",
+        "True axial strain ln(1 + e)",
+    ),
+    Register(
+        "elongation_mm",
+        6,
+        2,
+        RegisterType.FLOAT32,
+        Access.READ,
+        "mm",
+        "Elongation L - L0",
+    ),
+    Register(
+        "gauge_length_mm",
+        8,
+        2,
+        RegisterType.FLOAT32,
+        Access.READ,
+        "mm",
+        "Current gauge length L",
+    ),
+    Register("status", 10, 1, RegisterType.UINT16, Access.READ, "", _STATUS_TEXT),
+    Register(
+        "heartbeat",
+        11,
+        1,
+        RegisterType.UINT16,
+        Access.READ,
+        "",
+        "Counts every register update and every idle tick of the service (wraps): it keeps "
+        "moving while the appliance is alive",
+    ),
+    Register(
+        "frame_counter",
+        12,
+        2,
+        RegisterType.UINT32,
+        Access.READ,
+        "",
+        "Camera frame id of the latest sample (wraps)",
+    ),
+    Register(
+        "timestamp_unix_ns",
+        14,
+        4,
+        RegisterType.UINT64,
+        Access.READ,
+        "ns",
+        "Start of exposure of the latest sample, ns since the UNIX epoch (0 = unknown)",
+    ),
+    Register(
+        "poisson_ratio",
+        18,
+        2,
+        RegisterType.FLOAT32,
+        Access.READ,
+        "1",
+        "Poisson's ratio -e_transverse / e_axial (NaN below 1e-4 axial strain or without a "
+        "transverse gauge)",
+    ),
+    Register(
+        "crosshead_mm",
+        20,
+        2,
+        RegisterType.FLOAT32,
+        Access.READ,
+        "mm",
+        "Crosshead position read with the frame (NaN when not read)",
+    ),
+    Register(
+        "force_n",
+        22,
+        2,
+        RegisterType.FLOAT32,
+        Access.READ,
+        "N",
+        "Force read with the frame (NaN when not read)",
+    ),
+    Register(
+        "time_since_reference_s",
+        24,
+        2,
+        RegisterType.FLOAT32,
+        Access.READ,
+        "s",
+        "Device time of the latest sample since the reference frame",
+    ),
+    Register(
+        "points_lost",
+        26,
+        1,
+        RegisterType.UINT16,
+        Access.READ,
+        "",
+        "Points not measured in the latest sample",
+    ),
+    Register("run_state", 27, 1, RegisterType.UINT16, Access.READ, "", _RUN_STATE_TEXT),
+    Register(
+        "latency_ms",
+        28,
+        2,
+        RegisterType.FLOAT32,
+        Access.READ,
+        "ms",
+        "Processing latency of the latest sample: frame delivered to strain computed",
+    ),
+    Register(
+        "reserved",
+        30,
+        70,
+        RegisterType.RESERVED,
+        Access.READ,
+        "",
+        "Reserved: reads 0, writes get exception 2",
+    ),
+    Register(
+        "command",
+        100,
+        1,
+        RegisterType.UINT16,
+        Access.READ_WRITE,
+        "",
+        _COMMAND_TEXT,
+        choices=tuple(COMMANDS),
+    ),
+    Register(
+        "command_counter",
+        101,
+        1,
+        RegisterType.UINT16,
+        Access.READ,
+        "",
+        "Counts every command and set point write the appliance took (accepted or refused; "
+        "not those answered with an exception); wraps",
+    ),
+    Register("command_result", 102, 1, RegisterType.UINT16, Access.READ, "", _RESULT_TEXT),
+    Register(
+        "gauge_length_setpoint_mm",
+        103,
+        2,
+        RegisterType.FLOAT32,
+        Access.READ_WRITE,
+        "mm",
+        "Gauge length L0 for the next test, applied at the next start (write both registers "
+        "in one request; NaN, infinite or out of range: exception 3). Reads the set point in "
+        "force (NaN = the specimen's default)",
+        minimum=1.0,
+        maximum=10000.0,
+    ),
+)
+"""The whole map, in address order."""
+
+BY_NAME: Mapping[str, Register] = {register.name: register for register in REGISTER_MAP}
+"""Entries by name."""
+
+MAP_SIZE = REGISTER_MAP[-1].end
+"""Registers from address 0 to the end of the map."""
+
+MEASUREMENT_BLOCK: tuple[Register, ...] = tuple(
+    r for r in REGISTER_MAP if r.end <= BY_NAME["reserved"].address
+)
+"""The fixed block at 0 ... 29 that every sample rewrites (everything before `reserved`)."""
+
+
+def encode(register: Register, value: Value, word_order: WordOrder = "big") -> list[int]:
+    """Registers of one value, with pymodbus' converters.
+
+    Unsigned integers wrap modulo their size (counters); floats go to float32 (NaN kept).
+    RESERVED entries encode to zeros whatever the value.
+    """
+    return encode_block((register,), {register.name: value}, word_order)
+
+
+def encode_block(
+    registers: Sequence[Register], values: Mapping[str, Value], word_order: WordOrder = "big"
+) -> list[int]:
+    """Registers of consecutive entries (no gaps), one pymodbus call per run of one type.
+
+    Args:
+        registers: contiguous entries in address order.
+        values: value of every entry by name (RESERVED entries need none).
+        word_order: "big" (most significant word first) or "little".
+
+    Raises:
+        ValueError: the entries are not contiguous.
+    """
+    words: list[int] = []
+    run: list[Value] = []
+    run_type: RegisterType | None = None
+    expected = registers[0].address if registers else 0
+    for register in registers:
+        if register.address != expected:
+            raise ValueError(f"{register.name}: not contiguous with the entry before it")
+        expected = register.end
+        kind = register.data_type
+        if kind is not run_type and run:
+            words += _convert(run, run_type, word_order)
+            run = []
+        run_type = kind
+        if kind is RegisterType.RESERVED:
+            words += [0] * register.count
+            run_type = None
+            continue
+        value = values[register.name]
+        if kind is RegisterType.FLOAT32:
+            run.append(float(value))
+        else:
+            run.append(int(value) % (1 << (16 * register.count)))
+    if run:
+        words += _convert(run, run_type, word_order)
+    return words
+
+
+def _convert(values: list[Value], kind: RegisterType | None, word_order: WordOrder) -> list[int]:
+    if kind is None or kind.converter is None:
+        raise ValueError("reserved registers have no value to convert")
+    return ModbusClientMixin.convert_to_registers(values, kind.converter, word_order=word_order)
+
+
+def decode(register: Register, words: Sequence[int], word_order: WordOrder = "big") -> Value:
+    """The value of one entry from its registers, with pymodbus' converters.
+
+    Raises:
+        ValueError: wrong number of registers, or a RESERVED entry (it has no value).
+    """
+    if len(words) != register.count:
+        raise ValueError(f"{register.name}: needs {register.count} registers, got {len(words)}")
+    converter = register.data_type.converter
+    if converter is None:
+        raise ValueError(f"{register.name}: reserved registers have no value")
+    value = ModbusClientMixin.convert_from_registers(list(words), converter, word_order=word_order)
+    if not isinstance(value, int | float):
+        raise ValueError(f"{register.name}: registers decode to {value!r}, not one number")
+    return value
+
+
+def register_at(address: int) -> Register | None:
+    """The entry holding an address, or None outside the map."""
+    for register in REGISTER_MAP:
+        if register.address <= address < register.end:
+            return register
+    return None
+
+
+def render_markdown_table() -> str:
+    """The map as a Markdown table (what the README's "Modbus register map" section holds)."""
+    lines = [
+        "| address | name | type | access | unit | description |",
+        "|---|---|---|---|---|---|",
+    ]
+    for register in REGISTER_MAP:
+        span = (
+            str(register.address)
+            if register.count == 1
+            else f"{register.address}-{register.end - 1}"
+        )
+        description = register.description
+        if register.minimum is not None and register.maximum is not None:
+            description += f". Accepted: {register.minimum:g} ... {register.maximum:g}"
+        lines.append(
+            f"| {span} | `{register.name}` | {register.data_type.label} | "
+            f"{register.access.value} | {register.unit or '-'} | {description} |"
+        )
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,570 @@
+"""The Modbus strain server: the machine controller reads strain from it and writes commands.
+
+`StrainRegisterServer` serves the register map of `appliance.modbus_map` over Modbus TCP, over
+Modbus RTU on a serial device, or both at once (one register image), as `[modbus]` in the
+configuration says. The pymodbus servers run on an asyncio loop in a background thread; the
+measurement never waits for the network:
+
+* `publish(sample, facts)` is called on the measurement thread right after a frame's strain
+  is computed. It encodes the sample (tens of microseconds) and swaps it into the register
+  image under a lock that a reader only holds to copy registers out, so a request always
+  sees one whole update: a float is never torn, and strain, status and frame counter read
+  in one request belong to the same frame.
+* Before the first sample every float of the measurement block reads NaN and `status` has no
+  data-valid bit.
+* `set_run_state(state)` updates the state bits and the run-state code; `tick()` moves the
+  heartbeat while no frames come, so the controller sees the appliance alive.
+* A client's command write calls `on_command(name, value)` on the server's thread:
+  ("start" | "stop" | "zero", None) or ("gauge_length", mm). It returns whether the command
+  was accepted in the current run state (`command_result`, `command_counter`); it must return
+  quickly, since no other request is served meanwhile.
+
+Write access: with `[modbus] allow_write_from` empty anyone may write; otherwise only TCP
+clients at the listed IP addresses, every other write (RTU included: a serial line carries
+no client address) gets exception 1 (illegal function). Reads are open to every client.
+
+Unit ids: over RTU the server answers only `unit_id` and stays silent for the other ids (and
+for broadcasts), as a device on a shared line must; over TCP it answers `unit_id` and also 0
+and 255, the ids clients use for a device they reach directly. Requests to other ids get no
+answer.
+
+The datastore is pymodbus 3.16's SimDevice/SimData API: the map's entries become SimData
+blocks (read-only where the map says so, so pymodbus itself answers exception 2 to a write
+of a read-only register or an address outside the map), and the device's `action` callback
+copies this module's image into pymodbus' registers on every read and checks and executes
+every write. pymodbus internals this relies on (pinned by tests/system/test_modbus_server.py):
+
+* `ServerRequestHandler(owner, trace_packet, trace_pdu, trace_connect)` is what a server's
+  `callback_new_connection` returns, and its coroutine `handle_request()` serves
+  `self.last_pdu` (with its `dev_id`) to the end, awaiting the datastore's action inside the
+  same task; a subclass wraps it to learn the TCP peer (`transport.get_extra_info
+  ("peername")`) and to drop requests for other unit ids;
+* the SimDevice action's arguments `(function_code, start_address, address, count,
+  current_registers, set_values)`, `set_values` None for reads, and pymodbus answering a read
+  from `current_registers` right after the action returns (no await in between);
+* `serve_forever(background=True)` returning once listening and raising RuntimeError when it
+  cannot (it logs the cause and swallows it, so the address is probed first, by binding or
+  opening it once, to name the cause in the error).
+
+What it does not do: it is not a Modbus client, it does not decide what a command does (the
+`on_command` callback does), it keeps no history (only the latest sample), and it has no TLS
+or authentication beyond the IP allow-list.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextvars
+import ipaddress
+import logging
+import math
+import os
+import socket
+import threading
+from collections.abc import Callable, Sequence
+from concurrent.futures import TimeoutError as FutureTimeoutError
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from pymodbus.constants import ExcCodes
+from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+from pymodbus.server.requesthandler import ServerRequestHandler
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+from appliance import modbus_map
+from appliance.config import ModbusConfig, parse_address
+from appliance.errors import InputError
+from appliance.modbus_map import (
+    BY_NAME,
+    COMMANDS,
+    GAUGE_LENGTH_COMMAND,
+    MAP_SIZE,
+    MEASUREMENT_BLOCK,
+    REGISTER_MAP,
+    RUN_STATE_CODES,
+    CommandResult,
+    Register,
+    RegisterType,
+    StatusBit,
+)
+from appliance.run_state import RunState
+from appliance.tracking import TrackStatus
+
+if TYPE_CHECKING:
+    from appliance.measurement import StrainSample
+    from appliance.outputs import RunFacts
+
+_log = logging.getLogger(__name__)
+
+CommandHandler = Callable[[str, float | None], bool]
+"""on_command(name, value) -> accepted: name "start", "stop", "zero" (value None) or
+"gauge_length" (value in mm)."""
+
+TCP_DIRECT_UNIT_IDS = (0, 255)
+"""Unit ids a TCP client uses for a device it reaches directly; answered besides `unit_id`."""
+
+REGISTER_FUNCTION_CODES = frozenset((3, 4, 6, 16, 22, 23))
+"""Functions served: read holding/input registers, write single/multiple, mask write,
+read/write multiple. Coil and discrete-input functions get exception 1 (the map has none)."""
+
+_client_ip: contextvars.ContextVar[str | None] = contextvars.ContextVar(
+    "modbus_client_ip", default=None
+)
+"""IP address of the TCP client whose request is being served (None over RTU)."""
+
+_SAMPLE_BLOCK = tuple(
+    r for r in MEASUREMENT_BLOCK if r.name not in ("status", "heartbeat", "run_state")
+)
+_VALID_STATES = (RunState.RUNNING, RunState.STOPPING)
+
+
+class ServerStartError(InputError):
+    """The server cannot serve what `[modbus]` says; one line naming the key and the cause.
+
+    An `InputError`, so the command line reports it as one line like any bad setting.
+    """
+
+
+class _RequestHandler(ServerRequestHandler):
+    """pymodbus' per-connection handler, told the client's IP and the unit ids to answer."""
+
+    async def handle_request(self) -> None:
+        pdu = self.last_pdu
+        if pdu is None or pdu.dev_id not in self.server.unit_ids:
+            return
+        peer = None
+        if self.server.knows_peers and self.transport is not None:
+            name = self.transport.get_extra_info("peername")
+            peer = _normalised_ip(name[0]) if name else None
+        token = _client_ip.set(peer)
+        try:
+            await super().handle_request()
+        finally:
+            _client_ip.reset(token)
+
+
+class _TcpServer(ModbusTcpServer):
+    knows_peers = True
+
+    def __init__(self, device: SimDevice, address: tuple[str, int], unit_ids: Sequence[int]):
+        super().__init__(device, address=address)
+        self.unit_ids = frozenset(unit_ids)
+
+    def callback_new_connection(self) -> _RequestHandler:
+        return _RequestHandler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
+
+
+class _SerialServer(ModbusSerialServer):
+    knows_peers = False
+
+    def __init__(self, device: SimDevice, unit_ids: Sequence[int], **serial: Any):
+        super().__init__(device, **serial)
+        self.unit_ids = frozenset(unit_ids)
+
+    def callback_new_connection(self) -> _RequestHandler:
+        return _RequestHandler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
+
+
+def _normalised_ip(text: str) -> str:
+    """An IP address in one spelling (an IPv4-mapped IPv6 address as IPv4)."""
+    address = ipaddress.ip_address(text)
+    if isinstance(address, ipaddress.IPv6Address) and address.ipv4_mapped is not None:
+        address = address.ipv4_mapped
+    return str(address)
+
+
+class StrainRegisterServer:
+    """Serves the strain registers over Modbus TCP and/or RTU, as `[modbus]` configures.
+
+    Args:
+        config: the `[modbus]` table. `tcp` = "HOST:PORT" to listen on (empty = no TCP),
+            `rtu_device` = serial device for RTU (empty = no RTU); with neither, `start`
+            serves nothing and the image is still kept (publishing costs the same).
+        on_command: called on the server's thread for each command a client writes:
+            ("start" | "stop" | "zero", None) or ("gauge_length", mm); returns whether it
+            was accepted in the current run state. An exception it raises is answered with
+            exception 4 and logged.
+        gauge_length_setpoint_mm: the set point the gauge length register reads before a
+            client writes one (NaN = the specimen's default).
+
+    Raises:
+        InputError: an address of `allow_write_from` is not an IP address, or `tcp` is not
+            HOST:PORT.
+    """
+
+    def __init__(
+        self,
+        config: ModbusConfig,
+        on_command: CommandHandler,
+        *,
+        gauge_length_setpoint_mm: float = math.nan,
+    ) -> None:
+        self.config = config
+        self.on_command = on_command
+        self._word_order = "little" if config.word_order == "little" else "big"
+        try:
+            self._allowed = frozenset(_normalised_ip(ip) for ip in config.allow_write_from)
+        except ValueError as exc:
+            raise InputError(f"[modbus] allow_write_from: {exc}") from None
+        self._tcp = parse_address(config.tcp, "[modbus] tcp") if config.tcp else None
+        self._lock = threading.Lock()
+        self._image = [0] * MAP_SIZE
+        self._state = RunState.IDLE
+        self._sample_bits = StatusBit(0)
+        self._sample_valid = False
+        self._heartbeat = 0
+        self._command_counter = 0
+        self._entries = [modbus_map.register_at(address) for address in range(MAP_SIZE)]
+        self._status_at = BY_NAME["status"].address
+        self._heartbeat_at = BY_NAME["heartbeat"].address
+        self._run_state_at = BY_NAME["run_state"].address
+        self._sample_parts = self._contiguous_parts(_SAMPLE_BLOCK)
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._servers: list[_TcpServer | _SerialServer] = []
+        self._closed = False
+        for register in MEASUREMENT_BLOCK:
+            if register.data_type is RegisterType.FLOAT32:
+                self._put(register, math.nan)
+        self._put(BY_NAME["gauge_length_setpoint_mm"], gauge_length_setpoint_mm)
+        self._write_state_registers()
+
+    @property
+    def enabled(self) -> bool:
+        """Whether the configuration asks for a TCP or an RTU server."""
+        return bool(self._tcp or self.config.rtu_device)
+
+    def start(self, timeout_s: float = 5.0) -> None:
+        """Bind the TCP address and open the serial device, then serve in the background.
+
+        With neither `tcp` nor `rtu_device` configured it returns at once and serves nothing.
+
+        Raises:
+            ServerStartError: one line naming the key and the cause, e.g.
+                "[modbus] tcp 127.0.0.1:5020: address already in use"; nothing is left
+                running.
+            RuntimeError: started twice or after `close`.
+        """
+        if self._thread is not None or self._closed:
+            raise RuntimeError("StrainRegisterServer: start() once, before close()")
+        if not self.enabled:
+            return
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(
+            target=self._run_loop, name="modbus-server", args=(self._loop,), daemon=True
+        )
+        self._thread.start()
+        opened = asyncio.run_coroutine_threadsafe(self._open_servers(), self._loop)
+        try:
+            opened.result(timeout_s)
+        except FutureTimeoutError:
+            opened.cancel()
+            self.close(timeout_s)
+            raise ServerStartError(
+                f"[modbus]: the server did not start within {timeout_s:g} s"
+            ) from None
+        except BaseException:
+            self.close(timeout_s)
+            raise
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Stop serving and release the port and the device; safe to call twice."""
+        self._closed = True
+        loop, thread = self._loop, self._thread
+        if loop is None or thread is None or not thread.is_alive():
+            return
+        if loop.is_running():
+            closing = asyncio.run_coroutine_threadsafe(self._close_servers(), loop)
+            try:
+                closing.result(timeout_s)
+            except (FutureTimeoutError, RuntimeError):
+                _log.warning("modbus server did not close within %g s", timeout_s)
+            loop.call_soon_threadsafe(loop.stop)
+        thread.join(timeout_s)
+
+    def __enter__(self) -> StrainRegisterServer:
+        self.start()
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+    def publish(self, sample: StrainSample, facts: RunFacts | None) -> None:
+        """Write one sample into the registers (measurement thread; never blocks on I/O).
+
+        Args:
+            sample: the frame's measurement.
+            facts: the run's facts, for the UNIX time of the sample; None = timestamp 0
+                (unknown).
+        """
+        reading = sample.reading
+        machine = sample.machine
+        stamp = facts.unix_time_ns(sample.timestamp_ns) if facts is not None else 0
+        lost = int(np.count_nonzero(sample.status == TrackStatus.LOST))
+        values = {
+            "axial_strain": reading.engineering_strain,
+            "transverse_strain": reading.transverse_strain,
+            "true_strain": reading.true_strain,
+            "elongation_mm": reading.elongation_mm,
+            "gauge_length_mm": reading.gauge_length_mm,
+            "frame_counter": sample.frame_id,
+            "timestamp_unix_ns": max(stamp, 0),
+            "poisson_ratio": reading.poisson_ratio,
+            "crosshead_mm": machine.crosshead_mm if machine is not None else math.nan,
+            "force_n": machine.force_n if machine is not None else math.nan,
+            "time_since_reference_s": sample.time_s,
+            "points_lost": lost,
+            "latency_ms": sample.latency_s * 1e3,
+        }
+        parts = [
+            (start, modbus_map.encode_block(block, values, self._word_order))
+            for start, block in self._sample_parts
+        ]
+        bits = StatusBit(0)
+        if lost:
+            bits |= StatusBit.POINT_LOST
+        if sample.reference_updates:
+            bits |= StatusBit.REFERENCE_UPDATED
+        image = self._image
+        with self._lock:
+            for start, words in parts:
+                image[start : start + len(words)] = words
+            self._sample_valid = bool(sample.data_valid)
+            self._sample_bits = bits
+            self._write_state_registers()
+
+    def set_run_state(self, state: RunState) -> None:
+        """The run's state changed: state bits of `status` and the `run_state` code."""
+        with self._lock:
+            self._state = state
+            self._write_state_registers()
+
+    def tick(self) -> None:
+        """Move the heartbeat (the service calls this periodically while no frames come)."""
+        with self._lock:
+            self._write_state_registers()
+
+    def set_gauge_length_setpoint(self, length_mm: float) -> None:
+        """The set point in force changed outside Modbus (NaN = the specimen's default)."""
+        with self._lock:
+            self._put(BY_NAME["gauge_length_setpoint_mm"], length_mm)
+            self._beat()
+
+    def read_registers(self, address: int, count: int) -> list[int]:
+        """The registers a client would read now, zero-based (no network involved).
+
+        Raises:
+            ValueError: the range is outside the map.
+        """
+        if not (0 <= address and count >= 0 and address + count <= MAP_SIZE):
+            raise ValueError(f"registers {address} ... {address + count - 1} outside the map")
+        with self._lock:
+            return self._image[address : address + count]
+
+    @staticmethod
+    def _contiguous_parts(block: Sequence[Register]) -> list[tuple[int, tuple[Register, ...]]]:
+        parts: list[tuple[int, tuple[Register, ...]]] = []
+        current: list[Register] = []
+        for register in block:
+            if current and register.address != current[-1].end:
+                parts.append((current[0].address, tuple(current)))
+                current = []
+            current.append(register)
+        if current:
+            parts.append((current[0].address, tuple(current)))
+        return parts
+
+    def _put(self, register: Register, value: float | int) -> None:
+        words = modbus_map.encode(register, value, self._word_order)
+        self._image[register.address : register.end] = words
+
+    def _beat(self) -> None:
+        self._heartbeat = (self._heartbeat + 1) & 0xFFFF
+        self._image[self._heartbeat_at] = self._heartbeat
+
+    def _write_state_registers(self) -> None:
+        """Status, run state and heartbeat from the current state (caller holds the lock)."""
+        state = self._state
+        bits = self._sample_bits
+        if self._sample_valid and state in _VALID_STATES:
+            bits |= StatusBit.DATA_VALID
+        if state is RunState.RUNNING:
+            bits |= StatusBit.TRACKING
+        elif state is RunState.ARMED:
+            bits |= StatusBit.CALIBRATING
+        elif state is RunState.FAULT:
+            bits |= StatusBit.FAULT
+        self._image[self._status_at] = int(bits)
+        self._image[self._run_state_at] = RUN_STATE_CODES[state]
+        self._beat()
+
+    async def _on_access(
+        self,
+        function_code: int,
+        start_address: int,
+        address: int,
+        count: int,
+        current_registers: list[int],
+        set_values: list[int] | list[bool] | None,
+    ) -> ExcCodes | None:
+        """pymodbus' SimDevice action: every read and write of a register passes here."""
+        if function_code not in REGISTER_FUNCTION_CODES:
+            return ExcCodes.ILLEGAL_FUNCTION
+        if set_values is None:
+            offset = address - start_address
+            with self._lock:
+                current_registers[offset : offset + count] = self._image[address : address + count]
+            return None
+        return self._write(address, [int(v) for v in set_values])
+
+    def _write(self, address: int, words: list[int]) -> ExcCodes | None:
+        if self._allowed and _client_ip.get() not in self._allowed:
+            return ExcCodes.ILLEGAL_FUNCTION
+        end = address + len(words)
+        touched: list[Register] = []
+        for index in range(address, end):
+            register = self._entries[index] if 0 <= index < MAP_SIZE else None
+            if register is None or not register.writable:
+                return ExcCodes.ILLEGAL_ADDRESS
+            if register.address < address or register.end > end:
+                return ExcCodes.ILLEGAL_ADDRESS
+            if not touched or touched[-1] is not register:
+                touched.append(register)
+        decoded = []
+        for register in touched:
+            chunk = words[register.address - address : register.end - address]
+            value = modbus_map.decode(register, chunk, self._word_order)
+            if not register.accepts(value):
+                return ExcCodes.ILLEGAL_VALUE
+            decoded.append((register, value))
+        for register, value in decoded:
+            failed = self._command(register, value)
+            if failed is not None:
+                return failed
+        return None
+
+    def _command(self, register: Register, value: float | int) -> ExcCodes | None:
+        """Hand one validated write to `on_command` (outside the lock: it may change state)."""
+        if register.name == "command":
+            name, argument = COMMANDS[int(value)], None
+        else:
+            name, argument = GAUGE_LENGTH_COMMAND, float(value)
+        try:
+            accepted = bool(self.on_command(name, argument))
+        except Exception:
+            _log.exception("modbus command %s(%s) failed", name, argument)
+            return ExcCodes.DEVICE_FAILURE
+        with self._lock:
+            if register.name == "command":
+                self._image[register.address] = int(value)
+            elif accepted:
+                self._put(register, value)
+            self._command_counter = (self._command_counter + 1) & 0xFFFF
+            self._image[BY_NAME["command_counter"].address] = self._command_counter
+            result = CommandResult.ACCEPTED if accepted else CommandResult.REFUSED
+            self._image[BY_NAME["command_result"].address] = int(result)
+            self._beat()
+        return None
+
+    def _device(self) -> SimDevice:
+        blocks = [
+            SimData(
+                address=register.address,
+                count=register.count,
+                datatype=DataType.REGISTERS,
+                readonly=not register.writable,
+            )
+            for register in REGISTER_MAP
+        ]
+        return SimDevice(id=0, simdata=blocks, action=self._on_access)
+
+    @staticmethod
+    def _run_loop(loop: asyncio.AbstractEventLoop) -> None:
+        asyncio.set_event_loop(loop)
+        try:
+            loop.run_forever()
+        finally:
+            pending = asyncio.all_tasks(loop)
+            for task in pending:
+                task.cancel()
+            loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
+            loop.run_until_complete(loop.shutdown_asyncgens())
+            loop.close()
+
+    async def _open_servers(self) -> None:
+        config = self.config
+        if self._tcp is not None:
+            where = f"[modbus] tcp {config.tcp}"
+            cause = _tcp_failure(*self._tcp)
+            if cause is not None:
+                raise ServerStartError(f"{where}: {cause}")
+            server = _TcpServer(self._device(), self._tcp, (config.unit_id, *TCP_DIRECT_UNIT_IDS))
+            self._servers.append(server)
+            try:
+                await server.serve_forever(background=True)
+            except (RuntimeError, OSError) as exc:
+                raise ServerStartError(f"{where}: {_tcp_failure(*self._tcp) or exc}") from None
+        if config.rtu_device:
+            where = f"[modbus] rtu_device {config.rtu_device}"
+            cause = _serial_failure(config)
+            if cause is not None:
+                raise ServerStartError(f"{where}: {cause}")
+            server = _SerialServer(
+                self._device(),
+                (config.unit_id,),
+                port=config.rtu_device,
+                baudrate=config.rtu_baud,
+                parity=config.rtu_parity,
+                stopbits=config.rtu_stop_bits,
+                bytesize=8,
+            )
+            self._servers.append(server)
+            try:
+                await server.serve_forever(background=True)
+            except (RuntimeError, OSError, ValueError) as exc:
+                raise ServerStartError(f"{where}: {_serial_failure(config) or exc}") from None
+
+    async def _close_servers(self) -> None:
+        servers, self._servers = self._servers, []
+        for server in servers:
+            await server.shutdown()
+
+
+def _tcp_failure(host: str, port: int) -> str | None:
+    """Why (host, port) cannot be listened on (None: it can), found by binding a probe."""
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as exc:
+        return f"cannot resolve {host!r} ({exc.strerror})"
+    family, kind, proto, _, address = infos[0]
+    with socket.socket(family, kind, proto) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind(address)
+        except OSError as exc:
+            return (exc.strerror or str(exc)).lower()
+    return None
+
+
+def _serial_failure(config: ModbusConfig) -> str | None:
+    """Why the serial device cannot be opened (None: it can), found by opening it once."""
+    import serial
+
+    try:
+        port = serial.serial_for_url(
+            config.rtu_device,
+            exclusive=True,
+            baudrate=config.rtu_baud,
+            parity=config.rtu_parity,
+            stopbits=config.rtu_stop_bits,
+        )
+    except ValueError as exc:
+        return str(exc)
+    except serial.SerialException as exc:
+        if "lock" in str(exc):
+            return "in use by another program (cannot lock it)"
+        if exc.errno:
+            return os.strerror(exc.errno).lower()
+        return str(exc)
+    port.close()
+    return None

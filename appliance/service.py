@@ -1,0 +1,244 @@
+"""`extensometer serve`: the appliance as a long-running service under systemd.
+
+The service starts its outputs that outlive a test (the Modbus strain server, the Rerun
+viewer's server), checks the devices and warms up the measurement kernels, then tells the
+service manager it is ready (`READY=1`, `appliance.sd_notify`). From then on it runs one test
+after another, each started by the controller's start command (Modbus register 100 = 1) or,
+with `[service] start = "auto"`, the first one at once:
+
+* every test is recorded to a new MCAP file (`--record FILE.mcap` names the first, later ones
+  get `-2`, `-3`, ... before the suffix; by default a timestamped file in the state
+  directory, `$STATE_DIRECTORY` under systemd), with its summary beside it as JSON;
+* during a test the registers are written on the measurement thread with every frame, and
+  the watchdog is pinged from there too (`WATCHDOG=1`), so a measurement that stalls stops
+  the pings and systemd restarts the service; between tests the service's own wait loop pings;
+* `STATUS=` says what it is doing (idle, the test running, how the last one ended);
+* stop and zero commands act on the running test; the gauge length set point applies to the
+  next test;
+* SIGTERM (or SIGINT) ends the running test as an operator stop, closes its recording, sends
+  `STOPPING=1` and exits 0.
+
+With the simulated devices (`sim://` URLs) every test gets a new simulated specimen.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import os
+import signal
+import sys
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+
+from appliance.config import Config
+from appliance.errors import InputError
+from appliance.live_link import LiveLink
+from appliance.outputs import RunOutput
+from appliance.run_state import RunState, Transition
+from appliance.runner import run_test
+from appliance.sd_notify import ServiceNotifier
+
+IDLE_TICK_S = 0.1
+
+
+def state_directory(config: Config) -> Path:
+    """Where the service keeps recordings: `$STATE_DIRECTORY` (systemd), else the config's."""
+    return Path(
+        os.environ.get("STATE_DIRECTORY", "").split(":")[0] or config.service.state_directory
+    )
+
+
+def numbered(path: Path, number: int) -> Path:
+    """`path` for the first test, `stem-N.suffix` for the N-th."""
+    return path if number == 1 else path.with_name(f"{path.stem}-{number}{path.suffix}")
+
+
+class Service:
+    """One service process: servers, the wait for commands, the tests, the shutdown.
+
+    Args:
+        config: the validated configuration (command-line overrides applied).
+        record_path: the first test's recording; None = timestamped files in the state
+            directory.
+        notifier: the service manager's notifier.
+        viewer: a Rerun output that outlives the tests, or None.
+        log: where one line per event goes (journald reads stderr).
+        now: UNIX time source for test ids (injected for tests).
+    """
+
+    def __init__(
+        self,
+        config: Config,
+        *,
+        record_path: Path | None,
+        notifier: ServiceNotifier,
+        viewer: RunOutput | None = None,
+        log: TextIO = sys.stderr,
+        now: Callable[[], datetime.datetime] = lambda: datetime.datetime.now(datetime.UTC),
+    ) -> None:
+        self.config = config
+        self.record_path = record_path
+        self.notifier = notifier
+        self.log_stream = log
+        self._now = now
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._start_requested = config.service.start == "auto"
+        self._stopping = False
+        self._gauge_length_mm = config.gauge.length_mm
+        self._test_id = ""
+        self.tests_run = 0
+        self.link = LiveLink(
+            config,
+            notifier=notifier,
+            viewer=viewer,
+            on_start=self._on_start,
+            on_gauge_length=self._on_gauge_length,
+            on_transition=self._on_transition,
+        )
+
+    def log(self, text: str) -> None:
+        """One line on the service's log."""
+        self.log_stream.write(f"extensometer: {text}\n")
+        self.log_stream.flush()
+
+    def run(self) -> int:
+        """Serve until SIGTERM or SIGINT; returns the exit status (0 after a clean stop).
+
+        Raises:
+            InputError: a server or device that cannot start (names the key); nothing is left
+                running.
+        """
+        signals = (signal.SIGTERM, signal.SIGINT)
+        previous = {sig: signal.signal(sig, self._on_signal) for sig in signals}
+        try:
+            self._start_up()
+            self.notifier.ready(self._idle_status())
+            self.log(f"ready: {self._idle_status()}")
+            while True:
+                self.notifier.watchdog()
+                self.link.modbus.tick()
+                with self._lock:
+                    stopping, start = self._stopping, self._start_requested
+                    self._start_requested = False
+                if stopping:
+                    break
+                if start:
+                    self._run_one_test()
+                    continue
+                self._wake.wait(IDLE_TICK_S)
+                self._wake.clear()
+            self.notifier.stopping("stopping")
+            self.log("stopping")
+            return 0
+        finally:
+            self.link.close()
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+
+    def _start_up(self) -> None:
+        self.notifier.status("starting: servers, devices, measurement kernels")
+        for url in (self.config.camera.url, self.config.frame.url):
+            if not url.startswith("sim://"):
+                raise InputError(
+                    f"serve: {url}: only the simulated devices are available in this version"
+                )
+        if self.record_path is None:
+            directory = state_directory(self.config)
+            try:
+                directory.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise InputError(
+                    f"[service] state_directory {directory}: cannot create ({exc.strerror})"
+                ) from None
+        self.link.start()
+        _warm_up_measurement()
+
+    def _idle_status(self) -> str:
+        done = f"; {self.tests_run} tests run" if self.tests_run else ""
+        return f"idle, waiting for a start command{done}"
+
+    def _on_signal(self, signum: int, _frame: Any) -> None:
+        with self._lock:
+            self._stopping = True
+        self.link.request_stop(f"service stopping ({signal.Signals(signum).name})")
+        self._wake.set()
+
+    def _on_start(self) -> bool:
+        with self._lock:
+            idle = self.link.state in (RunState.IDLE, RunState.ABORTED, RunState.FAULT)
+            if not idle or self._stopping or self._start_requested:
+                return False
+            self._start_requested = True
+        self._wake.set()
+        return True
+
+    def _on_gauge_length(self, length_mm: float) -> bool:
+        with self._lock:
+            self._gauge_length_mm = length_mm
+        return True
+
+    def _on_transition(self, transition: Transition) -> None:
+        if transition.target is RunState.RUNNING:
+            self.notifier.status(f"running test {self._test_id}")
+        with self._lock:
+            stopping = self._stopping
+        if stopping and transition.target is RunState.RUNNING:
+            self.link.request_stop("service stopping")
+
+    def _run_one_test(self) -> None:
+        self.tests_run += 1
+        stamp = self._now().strftime("%Y%m%dT%H%M%SZ")
+        self._test_id = f"test-{stamp}-{self.tests_run:04d}"
+        if self.record_path is not None:
+            record = numbered(self.record_path, self.tests_run)
+        else:
+            record = state_directory(self.config) / f"{self._test_id}.mcap"
+        config = self.config
+        with self._lock:
+            gauge_length = self._gauge_length_mm
+        if gauge_length:
+            config = dataclasses.replace(
+                config, gauge=dataclasses.replace(config.gauge, length_mm=gauge_length)
+            )
+        self.log(f"{self._test_id}: starting, recording to {record}")
+        self.notifier.status(f"starting test {self._test_id}")
+        try:
+            outcome = run_test(
+                config,
+                simulate=True,
+                record_path=record,
+                test_id=self._test_id,
+                **self.link.run_arguments(),
+            )
+        except InputError as error:
+            self.log(f"{self._test_id}: not started: {error}")
+            self.notifier.status(f"last test not started: {error}; {self._idle_status()}")
+            self.link.modbus.set_run_state(RunState.FAULT)
+            return
+        summary = outcome.summary
+        record.with_suffix(".summary.json").write_text(outcome.to_json() + "\n")
+        ended = f"{summary.exit_status}: {summary.reason}"
+        self.log(
+            f"{self._test_id}: {ended}; {summary.frames_processed} frames, "
+            f"final strain {summary.final_strain}; recording {record}"
+        )
+        self.notifier.status(f"last test {ended}; {self._idle_status()}")
+
+
+def _warm_up_measurement() -> None:
+    """Compile (or load from the cache) the measurement kernels before the service is ready."""
+    from appliance.dic import synthetic
+    from appliance.tracking import MarkTracker, TrackerSettings
+
+    pattern = synthetic.dense_speckle(96, 96, seed=1, radius=2.0)
+    reference = synthetic.render(pattern, 96, 96)
+    points = np.array([[48.0, 40.0], [48.0, 56.0]])
+    tracker = MarkTracker(reference, points, [(0,), (1,)], TrackerSettings(subset_px=21))
+    moved = synthetic.render(pattern, 96, 96, synthetic.AffineMapping.translation(0.0, 0.5))
+    tracker.track(moved, 0.1)

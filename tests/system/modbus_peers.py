@@ -1,0 +1,204 @@
+"""Real Modbus peers for the strain server's tests: mbpoll, a socat pty pair, free ports.
+
+mbpoll (libmodbus) is the client a test runs against the server as a subprocess; socat makes
+a pair of linked ptys, the server on one end and mbpoll on the other, for Modbus RTU. Both
+are skipped with a clear reason when missing. Every process started here is ended by the
+context manager or helper that started it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import re
+import shutil
+import socket
+import subprocess
+import time
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from appliance.config import Config
+from appliance.gauges import Calibration, Gauge, StrainGaugesLayout, StrainReading
+from appliance.measurement import StrainSample
+from appliance.outputs import RunFacts
+from hal.camera.base import Frame
+from hal.frame.base import FrameState
+
+MBPOLL = shutil.which("mbpoll")
+SOCAT = shutil.which("socat")
+
+needs_mbpoll = pytest.mark.skipif(
+    MBPOLL is None, reason="mbpoll is not installed (apt-get install mbpoll)"
+)
+needs_socat = pytest.mark.skipif(
+    SOCAT is None, reason="socat is not installed (apt-get install socat)"
+)
+
+MBPOLL_TIMEOUT_S = 5.0
+"""mbpoll's response timeout (-o): generous, for a loaded 2-core machine."""
+
+_VALUE_LINE = re.compile(r"^\[(\d+)\]:\s+(\S+)(?:\s+\(-?\d+\))?\s*$", re.MULTILINE)
+"""A value line; a 16-bit value >= 32768 is followed by its signed reading in parentheses."""
+
+
+def free_tcp_port(host: str = "127.0.0.1") -> int:
+    """A TCP port nothing listens on now (the kernel's pick)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.bind((host, 0))
+        return probe.getsockname()[1]
+
+
+def mbpoll(
+    *args: str, response_timeout_s: float = MBPOLL_TIMEOUT_S, timeout_s: float = 60.0
+) -> subprocess.CompletedProcess:
+    """Run mbpoll with `args` and a response timeout (-o); never raises on failure."""
+    assert MBPOLL is not None
+    return subprocess.run(
+        [MBPOLL, "-o", f"{response_timeout_s:g}", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        check=False,
+    )
+
+
+def mbpoll_tcp(
+    port: int,
+    *options: str,
+    write: Sequence[str] = (),
+    response_timeout_s: float = MBPOLL_TIMEOUT_S,
+) -> subprocess.CompletedProcess:
+    """mbpoll over TCP to 127.0.0.1:port, zero-based addresses; writes `write` if given.
+
+    mbpoll takes the values to write after the host, behind "--" (so negatives are values).
+    """
+    values = ("--", *write) if write else ()
+    return mbpoll(
+        "-m",
+        "tcp",
+        "-p",
+        str(port),
+        "-0",
+        *options,
+        "127.0.0.1",
+        *values,
+        response_timeout_s=response_timeout_s,
+    )
+
+
+def mbpoll_read_tcp(port: int, *args: str) -> dict[int, str]:
+    """One poll over TCP; the values mbpoll printed by address (asserts it succeeded)."""
+    done = mbpoll_tcp(port, "-1", *args)
+    assert done.returncode == 0, done.stdout + done.stderr
+    return printed_values(done.stdout)
+
+
+def printed_values(stdout: str) -> dict[int, str]:
+    """mbpoll's "[address]: value" lines as {address: text} (unsigned for 16-bit values)."""
+    return {int(address): text for address, text in _VALUE_LINE.findall(stdout)}
+
+
+@contextlib.contextmanager
+def pty_pair(directory: Path, timeout_s: float = 20.0) -> Iterator[tuple[str, str]]:
+    """Two linked ptys made by socat, as (server end, client end) paths; socat ended after."""
+    assert SOCAT is not None
+    server_end, client_end = directory / "ttyA", directory / "ttyB"
+    process = subprocess.Popen(
+        [
+            SOCAT,
+            "-d",
+            "-d",
+            f"pty,raw,echo=0,link={server_end}",
+            f"pty,raw,echo=0,link={client_end}",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        deadline = time.monotonic() + timeout_s
+        while not (server_end.exists() and client_end.exists()):
+            if process.poll() is not None:
+                message = process.stderr.read() if process.stderr else ""
+                raise RuntimeError(f"socat exited: {message}")
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"socat made no pty pair within {timeout_s:g} s")
+            time.sleep(0.02)
+        yield str(server_end), str(client_end)
+    finally:
+        process.terminate()
+        try:
+            process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait(timeout=10)
+        if process.stderr is not None:
+            process.stderr.close()
+
+
+def make_sample(
+    *,
+    strain: float = 0.123456,
+    transverse: float = -0.0321,
+    elongation_mm: float = 6.1728,
+    gauge_length_mm: float = 56.1728,
+    poisson: float = 0.26,
+    frame_id: int = 70_000,
+    timestamp_ns: int = 1_234_567_890,
+    time_s: float = 12.5,
+    status: tuple[int, ...] = (0, 0, 0, 0),
+    data_valid: bool = True,
+    reference_updates: int = 0,
+    machine: FrameState | None = None,
+    latency_s: float = 0.00125,
+) -> StrainSample:
+    """A sample with known numbers, built directly (no tracking)."""
+    count = len(status)
+    reading = StrainReading(
+        axial_px=100.0 * (1 + strain),
+        engineering_strain=strain,
+        true_strain=math.log1p(strain) if strain > -1 else math.nan,
+        elongation_mm=elongation_mm,
+        gauge_length_mm=gauge_length_mm,
+        transverse_strain=transverse,
+        poisson_ratio=poisson,
+    )
+    return StrainSample(
+        index=0,
+        frame_id=frame_id,
+        timestamp_ns=timestamp_ns,
+        time_s=time_s,
+        exposure_us=100.0,
+        reading=reading,
+        positions=np.zeros((count, 2)),
+        status=np.asarray(status, dtype=np.int8),
+        zncc=np.ones(count),
+        gradients=np.zeros((count, 4)),
+        data_valid=data_valid,
+        reference_updates=reference_updates,
+        machine=machine,
+        latency_s=latency_s,
+    )
+
+
+def make_facts(epoch_offset_ns: int = 1_700_000_000_000_000_000) -> RunFacts:
+    """Run facts whose only figure that matters here is the device-to-UNIX time offset."""
+    points = np.array([[10.0, 10.0], [12.0, 10.0], [10.0, 60.0], [12.0, 60.0]])
+    layout = StrainGaugesLayout(axial=Gauge((0, 1), (2, 3)), transverse=None)
+    reference = Frame(
+        image=np.zeros((80, 30), dtype=np.uint8), frame_id=0, timestamp_ns=0, exposure_us=100.0
+    )
+    return RunFacts(
+        config=Config(),
+        reference=reference,
+        points=points,
+        marks=((0, 1), (2, 3)),
+        layout=layout,
+        calibration=Calibration(0.1),
+        gauge_length_mm=5.0,
+        epoch_offset_ns=epoch_offset_ns,
+    )
