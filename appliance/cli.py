@@ -272,12 +272,9 @@ def _with_live_options(config, args: argparse.Namespace):
 
 def _viewer(config):
     """The Rerun viewer the configuration asks for, or None."""
-    rerun = config.rerun
-    if not (rerun.serve or rerun.connect or rerun.save):
-        return None
-    from appliance.viewer import RerunViewer
+    from appliance.viewer import RerunViewer, has_sinks
 
-    return RerunViewer(rerun)
+    return RerunViewer(config.rerun) if has_sinks(config.rerun) else None
 
 
 def _run_config(args: argparse.Namespace):

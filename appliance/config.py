@@ -180,11 +180,12 @@ class ModbusConfig:
 class RerunConfig:
     """[rerun]: live monitoring in a Rerun viewer (`appliance.viewer`).
 
-    Any of three sinks: `serve` = "HOST:PORT" of a gRPC server remote viewers connect to,
-    `connect` = the URL of a viewer to push to (`rerun+http://HOST:PORT/proxy`), `save` = an
-    .rrd file. Images go at `image_rate_hz`, scaled by `image_scale`; the viewer has a queue
-    of `queue_size` samples and drops (and counts) what does not fit, so it never slows the
-    measurement.
+    Any of three sinks: `serve` = "HOST:PORT" of a gRPC server remote viewers connect to (HOST
+    an IP address: no name is looked up), `connect` = the URL of a viewer to push to
+    (`rerun+http://HOST:PORT/proxy`), `save` = an .rrd file (`{test}` in the path becomes the
+    test id, one file per test; without it each test replaces the file). Images go at
+    `image_rate_hz`, scaled by `image_scale`; the viewer has a queue of `queue_size` samples
+    and drops (and counts) what does not fit, so it never slows the measurement.
     """
 
     serve: str = field(default="", metadata={"address": True})
