@@ -13,10 +13,15 @@ import time
 from pathlib import Path
 
 import pytest
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
 
+from appliance.recording_reader import RecordingReader
+from appliance.viewer import proxy_url
+from tests.system import rerun_peers
 from tests.system.modbus_peers import MBPOLL, free_tcp_port, mbpoll_read_tcp, mbpoll_tcp
 from tests.system.notify_harness import NotifyHarness
-from tests.system.test_recording import cli
+from tests.system.test_recording import cli, rerun_mcap_check
 
 EXTENSOMETER = str(Path(sys.executable).with_name("extensometer"))
 
@@ -97,6 +102,53 @@ def test_a_served_test_is_read_live_commanded_and_recorded(tmp_path):
     replay = cli("replay", str(recordings[0]), "--json")
     assert replay.returncode == 0, replay.stderr
     assert json.loads(replay.stdout)["max_abs_diff_to_recorded"] == 0.0
+
+
+def test_a_served_test_is_read_by_mbpoll_watched_in_rerun_and_replays_bit_for_bit(tmp_path):
+    """The issue's acceptance: a simulated test served as a service is read live by mbpoll and
+    watched by a headless Rerun receiver; its MCAP file passes `rerun mcap check`, opens with
+    the Foxglove schemas and replays bit for bit."""
+    port = free_tcp_port()
+    viewer_port = rerun_peers.free_port()
+    config = _config(tmp_path, port, rerun=f'serve = "127.0.0.1:{viewer_port}"')
+    watched = tmp_path / "watched.rrd"
+    with NotifyHarness(
+        [EXTENSOMETER, "serve", "--config", str(config)], watchdog_usec=2_000_000
+    ) as service:
+        service.wait_for("READY=1", timeout=180)
+        with rerun_peers.receiver(
+            proxy_url("127.0.0.1", viewer_port), watched, tmp_path / "receiver.log"
+        ) as receiver:
+            start = mbpoll_tcp(port, "-r", "100", "-t", "4", write=["1"])
+            assert start.returncode == 0, start.stdout + start.stderr
+            live = _wait_registers(
+                port, lambda r: r["status"] & STATUS_TRACKING and r["strain"] > 0.05, 60
+            )
+            service.wait_for(lambda n: n.value("STATUS", "").startswith("last test completed"), 120)
+            assert service.terminate(timeout=60) == 0
+            assert receiver.wait(60) == 0, receiver.log_path.read_text()
+    assert rerun_peers.verify(watched).returncode == 0
+    (recording,) = sorted((tmp_path / "state").glob("test-*.mcap"))
+    reader = RecordingReader(recording)
+    recorded = {s.index: s.strain["engineering_strain"] for s in reader.samples()}
+    reader.close()
+    assert live["frame"] > 0 and 0.05 < live["strain"] < 0.35
+    (store,) = [v for k, v in rerun_peers.recordings(watched).items() if k.startswith("test-")]
+    assert rerun_peers.series(store, "strain/axial") == {
+        k: v for k, v in recorded.items() if v is not None
+    }
+    rerun_mcap_check(recording)
+    with recording.open("rb") as f:
+        decoded = make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
+            topics=["/camera/full"]
+        )
+        image = next(iter(decoded))[3]
+        assert type(image).__name__ == "RawImage" and (image.width, image.height) == (512, 1024)
+    replay = cli("replay", str(recording), "--json")
+    assert replay.returncode == 0, replay.stderr
+    replayed = json.loads(replay.stdout)
+    assert replayed["max_abs_diff_to_recorded"] == 0.0 and replayed["samples_differing"] == 0
+    assert replayed["frames_processed"] == len(recorded)
 
 
 def test_a_stalled_measurement_stops_the_watchdog_and_sigterm_still_closes_the_recording(

@@ -131,8 +131,10 @@ def test_a_failing_disk_ends_the_recording_with_its_cause(tmp_path):
     read_fd, write_fd = os.pipe()
 
     def disk_that_fails() -> None:
+        taken = 0
         with os.fdopen(read_fd, "rb", buffering=0) as pipe:
-            pipe.read(100_000)
+            while taken < 300_000 and (chunk := pipe.read(65536)):
+                taken += len(chunk)
 
     disk = threading.Thread(target=disk_that_fails)
     disk.start()
