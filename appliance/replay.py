@@ -51,7 +51,6 @@ from appliance.recording_format import (
 from appliance.recording_reader import RecordedSample, RecordingReader, config_table
 from appliance.runner import RunOutcome, build_measurement
 from appliance.summary import RunSummary, SampleRecord
-from appliance.tracking import TrackStatus
 from hal.camera.base import Frame
 
 
@@ -212,14 +211,10 @@ def _replay(
         differing += differs
         truth = recorded.truth or {}
         records.append(
-            SampleRecord(
-                strain=sample.reading.engineering_strain,
-                elongation_mm=sample.reading.elongation_mm,
-                valid=sample.data_valid,
-                points_lost=int((sample.status == TrackStatus.LOST).sum()),
-                reference_updates=sample.reference_updates,
-                true_strain=number(truth.get("true_engineering_strain")),
-                true_elongation_mm=number(truth.get("true_elongation_mm")),
+            SampleRecord.of(
+                sample,
+                number(truth.get("true_engineering_strain")),
+                number(truth.get("true_elongation_mm")),
             )
         )
         for output in outputs:

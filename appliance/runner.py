@@ -42,7 +42,7 @@ from appliance.recorder import McapRecorder
 from appliance.run_state import RunStateMachine, Transition
 from appliance.strain_file import StrainCsvWriter
 from appliance.summary import RunSummary, SampleRecord
-from appliance.tracking import MarkTracker, TrackerSettings, TrackStatus
+from appliance.tracking import MarkTracker, TrackerSettings
 from hal.camera.base import CameraSettings, PixelFormat, TriggerInfo, TriggerMode
 from hal.clock import Pace
 
@@ -321,18 +321,7 @@ def run_test(
         return tracker, gauges
 
     def record(sample: StrainSample) -> None:
-        true_strain, true_elongation = state_of_run["truth"].at(sample)
-        records.append(
-            SampleRecord(
-                strain=sample.reading.engineering_strain,
-                elongation_mm=sample.reading.elongation_mm,
-                valid=sample.data_valid,
-                points_lost=int((sample.status == TrackStatus.LOST).sum()),
-                reference_updates=sample.reference_updates,
-                true_strain=true_strain,
-                true_elongation_mm=true_elongation,
-            )
-        )
+        records.append(SampleRecord.of(sample, *state_of_run["truth"].at(sample)))
         state_of_run["last_time_s"] = sample.time_s
         if sample.data_valid:
             blur = state_of_run["truth"].blur_px(sample)

@@ -25,6 +25,8 @@ import numpy as np
 
 from appliance.iso9513 import best_class
 from appliance.loop import LoopResult
+from appliance.measurement import StrainSample
+from appliance.tracking import TrackStatus
 
 REL_ERROR_MIN_STRAIN = 0.01
 SMALL_ELONGATION_UM = 300.0
@@ -51,6 +53,24 @@ class SampleRecord:
     reference_updates: int
     true_strain: float = math.nan
     true_elongation_mm: float = math.nan
+
+    @classmethod
+    def of(
+        cls,
+        sample: StrainSample,
+        true_strain: float = math.nan,
+        true_elongation_mm: float = math.nan,
+    ) -> SampleRecord:
+        """The record of a measured sample, with its truth where known."""
+        return cls(
+            strain=sample.reading.engineering_strain,
+            elongation_mm=sample.reading.elongation_mm,
+            valid=sample.data_valid,
+            points_lost=int((sample.status == TrackStatus.LOST).sum()),
+            reference_updates=sample.reference_updates,
+            true_strain=true_strain,
+            true_elongation_mm=true_elongation_mm,
+        )
 
 
 @dataclass(frozen=True)
