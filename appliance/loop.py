@@ -144,7 +144,7 @@ class MeasurementLoop:
             self._reference_time_ns = reference.timestamp_ns
             self._last_frame_id = reference.frame_id
             tracker, gauges = self.setup(reference)
-        except HardwareError as exc:
+        except Exception as exc:  # noqa: BLE001 - a failed start is a FAULT with its reason
             return self._fail_before_start(exc)
         self.state.handle(RunEvent.START, "measuring")
         if self.start_speed_mm_min is not None and self.frame is not None:
@@ -197,7 +197,8 @@ class MeasurementLoop:
 
     def _fail_before_start(self, exc: BaseException) -> LoopResult:
         self._result.exit_status = "fault"
-        self._result.reason = f"reference frame: {exc}"
+        where = "" if isinstance(exc, HardwareError) else f"{type(exc).__name__}: "
+        self._result.reason = f"reference frame: {where}{exc}"
         self.state.handle(RunEvent.FAULT, self._result.reason)
         self.camera.disarm()
         self._result.final_state = self.state.state
