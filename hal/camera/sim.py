@@ -15,8 +15,13 @@ on, as a hung driver does: `fetch` blocks, ignoring its timeout, until the camer
 or closed, then raises `HardwareConnectError`. It exists to prove that the service's watchdog
 catches a measurement that stalls.
 
+In real time, the internal trigger keeps the camera's own time: when the host (or the
+renderer) falls behind by more than a frame period, the exposures it missed are lost and the
+frame ids skip them, as a camera whose buffers overflow does; as fast as possible, nothing is
+ever missed.
+
 What it does not model: lens distortion, vignetting, rolling shutter, dark current and fixed
-pattern noise, dropped or corrupted frames, transport latency or bandwidth limits, trigger
+pattern noise, corrupted frames, transport latency or bandwidth limits, trigger
 jitter (edges are exact), or readout time limiting the frame rate.
 """
 
@@ -38,7 +43,7 @@ from hal.camera.base import (
     TriggerInfo,
     TriggerMode,
 )
-from hal.clock import SimClock
+from hal.clock import Pace, SimClock
 from hal.errors import HardwareConfigError, HardwareConnectError, HardwareTimeout
 
 
@@ -172,8 +177,15 @@ class SimCamera:
     def _next_start(self, timeout_s: float) -> float:
         mode = self._trigger.mode
         if mode is TriggerMode.INTERNAL:
+            period = 1.0 / float(self._trigger.rate_hz)
             start = self._next_internal_s
-            self._next_internal_s = start + 1.0 / float(self._trigger.rate_hz)
+            if self._clock.pace is Pace.REAL_TIME:
+                late = self._clock.now_s() - (start + self._settings.exposure_us * 1e-6)
+                if late > period:
+                    missed = int(late // period)
+                    start += missed * period
+                    self._frame_id += missed
+            self._next_internal_s = start + period
             return start
         if not self._pending:
             self._clock.wait_until(self._clock.now_s() + timeout_s)

@@ -167,3 +167,22 @@ def test_real_time_clock_sleeps_with_the_injected_sleep():
     assert slept == [pytest.approx(0.25)] and clock.now_s() == pytest.approx(0.25)
     clock.wait_until(0.1)
     assert len(slept) == 1
+
+
+def test_a_real_time_camera_loses_the_exposures_a_slow_host_misses():
+    now = [0.0]
+
+    def sleep(seconds):
+        now[0] += seconds
+
+    clock = SimClock(Pace.REAL_TIME, wall=lambda: now[0], sleep=sleep)
+    camera = noiseless_camera(RampScene(), clock)
+    camera.configure(CameraSettings(exposure_us=1000.0))
+    camera.prepare(TriggerInfo(mode=TriggerMode.INTERNAL, rate_hz=100.0))
+    camera.arm()
+    first = camera.fetch(1.0)
+    now[0] += 0.035
+    late = camera.fetch(1.0)
+    on_time = camera.fetch(1.0)
+    assert (first.frame_id, late.frame_id, on_time.frame_id) == (0, 3, 4)
+    assert [f.timestamp_ns for f in (first, late, on_time)] == [0, 30_000_000, 40_000_000]
