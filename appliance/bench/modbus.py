@@ -388,12 +388,10 @@ def run_modbus_benchmark(out: Path | None, as_json: bool, *, frames: int = 500) 
 
     Returns the exit status (0: measured, whether or not the target was met).
     """
+    from appliance.bench.figures_output import emit_figures
+
     figures = measure_modbus_latency(frames)
-    text = json.dumps(figures, indent=1)
-    if out is not None:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(text + "\n", encoding="utf-8")
-    sys.stdout.write(text + "\n" if as_json else format_table(figures) + "\n")
+    emit_figures(figures, format_table(figures), as_json=as_json, out=out)
     return 0
 
 

@@ -14,11 +14,9 @@ Each time is the median of several repeats after a warm-up run (numba compilatio
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import statistics
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -28,6 +26,7 @@ import numba
 import numpy as np
 
 from appliance import __version__
+from appliance.bench.figures_output import emit_figures
 from appliance.dic import integer_search
 from appliance.dic.icgn import ICGN
 from appliance.dic.synthetic import AffineMapping, dense_speckle, render
@@ -220,9 +219,5 @@ def format_table(figures: dict) -> str:
 def run_speed_benchmark(*, as_json: bool = False, out: Path | None = None) -> int:
     """Entry point of `extensometer bench speed`; returns the exit status."""
     figures = measure_speed()
-    text = json.dumps(figures, indent=1)
-    if out is not None:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(text + "\n", encoding="utf-8")
-    sys.stdout.write(text + "\n" if as_json else format_table(figures) + "\n")
+    emit_figures(figures, format_table(figures), as_json=as_json, out=out)
     return 0
