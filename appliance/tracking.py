@@ -65,6 +65,14 @@ class TrackStatus(enum.IntEnum):
     LOST = 2
 
 
+# Plain ints for the per-frame array work: numpy looks an enum member's type up for array
+# protocols on every use, which costs more than the comparison itself.
+_TRACKED = int(TrackStatus.TRACKED)
+_REACQUIRED = int(TrackStatus.REACQUIRED)
+_LOST = int(TrackStatus.LOST)
+_CONVERGED = int(PointStatus.CONVERGED)
+
+
 @dataclass(frozen=True)
 class TrackerSettings:
     """Tuning of `MarkTracker`; every length in px of the image.
@@ -182,6 +190,12 @@ class TrackedFrame:
         return self.status != TrackStatus.LOST
 
 
+def _mean_rows(values: np.ndarray) -> np.ndarray:
+    """`values.mean(axis=0)`: the same sum and division, without numpy's Python-level wrapper
+    (which costs more than the arithmetic for the few rows of a mark)."""
+    return np.add.reduce(values, axis=0) / values.shape[0]
+
+
 def _odd_at_most(value: float, lowest: int, highest: int) -> int:
     size = int(math.floor(value))
     size -= 1 - size % 2
@@ -193,6 +207,9 @@ class _Mark:
 
     def __init__(self, indices: np.ndarray, settings: TrackerSettings) -> None:
         self.indices = indices
+        first = int(indices[0])
+        contiguous = np.array_equal(indices, np.arange(first, first + indices.size))
+        self.rows = slice(first, first + indices.size) if contiguous else indices
         self.settings = settings
         self.subset = settings.subset_px
         self.deformation_total = np.eye(2)
@@ -215,7 +232,8 @@ class _Mark:
             border = self.subset // 2 + radius + s.margin_px
             origin = np.floor(lo).astype(np.int64) - border
             width, height = (np.ceil(hi).astype(np.int64) + border + 1 - origin).tolist()
-            self.stages[name] = _Stage(origin, _crop(image, origin, width, height))
+            crop = np.array(_crop(image, origin, width, height))
+            self.stages[name] = _Stage(origin, crop)
         self.prepare(0.0)
 
     def reference_region(self, shape: tuple[int, ...]) -> ReadRegion:
@@ -227,7 +245,12 @@ class _Mark:
         return functools.reduce(ReadRegion.union, regions)
 
     def prepare(self, blur_px: float) -> None:
-        """(Re)build the correlators on the reference crops, blurred by `blur_px` along the axis."""
+        """(Re)build the correlators on the reference crops, blurred by `blur_px` along the axis.
+
+        The every-frame correlator is prepared at once, the re-acquisition one when first used
+        (`correlator`): a reference update does not pay for a re-acquisition that may never
+        be needed.
+        """
         s = self.settings
         self.blur_applied = blur_px
         for name, search, radius in (
@@ -243,7 +266,16 @@ class _Mark:
                 prefilter_sigma=s.prefilter_sigma_px,
                 threads=1,
             )
+            stage.ready = False
+        self.correlator("track")
+
+    def correlator(self, name: str) -> Correlator:
+        """The correlator of stage `name` ("track" or "reacquire"), prepared."""
+        stage = self.stages[name]
+        if not stage.ready:
             stage.correlator.prepare(stage.crop, self.reference_positions - stage.origin)
+            stage.ready = True
+        return stage.correlator
 
 
 @dataclass
@@ -253,6 +285,7 @@ class _Stage:
     origin: np.ndarray
     crop: np.ndarray
     correlator: Correlator | None = None
+    ready: bool = False
 
 
 def _axis_angle(axis: tuple[float, float]) -> float:
@@ -270,13 +303,14 @@ def _crop_region(shape: tuple[int, ...], origin: np.ndarray, width: int, height:
 
 
 def _crop(image: np.ndarray, origin: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Window of `image` at `origin` (x0, y0); parts outside the image repeat the edge."""
+    """Window of `image` at `origin` (x0, y0) as float64; parts outside the image repeat the
+    edge. A float64 image's window wholly inside may be a view (valid while the image is)."""
     x0, y0 = int(origin[0]), int(origin[1])
     h, w = image.shape
+    if 0 <= x0 and x0 + width <= w and 0 <= y0 and y0 + height <= h:
+        return np.ascontiguousarray(image[y0 : y0 + height, x0 : x0 + width], dtype=np.float64)
     rows = np.clip(np.arange(y0, y0 + height), 0, h - 1)
     cols = np.clip(np.arange(x0, x0 + width), 0, w - 1)
-    if 0 <= x0 and x0 + width <= w and 0 <= y0 and y0 + height <= h:
-        return np.asarray(image[y0 : y0 + height, x0 : x0 + width], dtype=np.float64)
     return np.asarray(image[np.ix_(rows, cols)], dtype=np.float64)
 
 
@@ -329,7 +363,7 @@ class MarkTracker:
         """
         image = np.asarray(image)
         positions = np.empty((self.n, 2))
-        status = np.full(self.n, TrackStatus.LOST, dtype=np.int8)
+        status = np.full(self.n, _LOST, dtype=np.int8)
         zncc = np.full(self.n, np.nan)
         gradients = np.zeros((self.n, 4))
         updates = 0
@@ -338,7 +372,7 @@ class MarkTracker:
         for mark in self._marks:
             reads: list[ReadRegion] = []
             result = self._track_mark(mark, image, time_s, exposure_s, reads)
-            idx = mark.indices
+            idx = mark.rows
             positions[idx], status[idx], zncc[idx], gradients[idx] = result[:4]
             if result[4]:
                 lost_marks += 1
@@ -360,7 +394,7 @@ class MarkTracker:
         reads: list[ReadRegion],
     ):
         s = self.settings
-        last = self.positions[mark.indices]
+        last = self.positions[mark.rows]
         dt = None if mark.last_time is None else time_s - mark.last_time
         predicted = last + (mark.velocity * dt if dt else 0.0)
         velocity = mark.velocity
@@ -372,14 +406,14 @@ class MarkTracker:
             positions, status, _, gradients, mark_lost = result
             if mark_lost or not dt:
                 break
-            velocity = (positions.mean(axis=0) - last.mean(axis=0)) / dt
+            velocity = (_mean_rows(positions) - _mean_rows(last)) / dt
             blur_now = float(np.hypot(*velocity)) * exposure_s
             if not mark.first_reference or abs(blur_now - mark.blur_applied) <= (
                 s.blur_tolerance_px
             ):
                 break
         if not mark_lost:
-            mark.gradient = gradients[status != TrackStatus.LOST].mean(axis=0)
+            mark.gradient = _mean_rows(gradients[status != _LOST])
             if dt:
                 mark.velocity = velocity
         mark.last_time = time_s
@@ -393,49 +427,54 @@ class MarkTracker:
         to `reads`."""
         s = self.settings
         gradient_guess = mark.gradient
+        reference = mark.reference_positions
         m = mark.indices.size
-        out_pos = predicted.copy()
-        out_status = np.full(m, TrackStatus.LOST, dtype=np.int8)
-        out_zncc = np.full(m, np.nan)
-        out_grad = np.tile(gradient_guess, (m, 1))
+        offset = predicted - reference
+        shift = _mean_rows(offset).round().astype(np.int64)
+        guess = np.empty((m, 6))
+        guess[:, :2] = offset - shift
+        guess[:, 2:] = gradient_guess
+        prewarps = [tuple(gradient_guess)]
+        positions = predicted
+        status = np.full(m, _LOST, dtype=np.int8)
+        zncc = np.full(m, np.nan)
+        gradients = gradient_guess[np.newaxis].repeat(m, axis=0)
         pending = np.ones(m, dtype=bool)
-        shift = np.round((predicted - mark.reference_positions).mean(axis=0)).astype(np.int64)
         for name, flag, radius in (
-            ("track", TrackStatus.TRACKED, s.search_radius_px),
-            ("reacquire", TrackStatus.REACQUIRED, s.reacquire_radius_px),
+            ("track", _TRACKED, s.search_radius_px),
+            ("reacquire", _REACQUIRED, s.reacquire_radius_px),
         ):
             stage = mark.stages[name]
             h, w = stage.crop.shape
-            crop = _crop(image, stage.origin + shift, w, h)
-            reads.append(_crop_region(image.shape, stage.origin + shift, w, h))
-            guess = np.empty((m, 6))
-            guess[:, :2] = predicted - mark.reference_positions - shift
-            guess[:, 2:] = gradient_guess
-            stage.correlator.prewarps = [tuple(gradient_guess)]
-            result = stage.correlator.measure(crop, guess).refinement
+            origin = stage.origin + shift
+            reads.append(_crop_region(image.shape, origin, w, h))
+            correlator = mark.correlator(name)
+            correlator.prewarps = prewarps
+            result = correlator.measure(_crop(image, origin, w, h), guess).refinement
             moved = np.hypot(result.u - guess[:, 0], result.v - guess[:, 1])
             good = (
-                (result.status == PointStatus.CONVERGED)
+                (result.status == _CONVERGED)
                 & (result.zncc >= s.min_zncc)
                 & (moved <= radius + 1.0)
             )
             take = pending & good
-            out_pos[take, 0] = mark.reference_positions[take, 0] + result.u[take] + shift[0]
-            out_pos[take, 1] = mark.reference_positions[take, 1] + result.v[take] + shift[1]
-            out_status[take] = flag
-            out_zncc[take] = result.zncc[take]
-            grads = np.stack([result.ux, result.uy, result.vx, result.vy], axis=1)
-            out_grad[take] = grads[take]
+            rows = take[:, np.newaxis]
+            found = np.array((result.u, result.v)).T
+            positions = np.where(rows, reference + found + shift, positions)
+            status = np.where(take, np.int8(flag), status)
+            zncc = np.where(take, result.zncc, zncc)
+            shape = np.array((result.ux, result.uy, result.vx, result.vy)).T
+            gradients = np.where(rows, shape, gradients)
             pending &= ~good
             if not pending.any():
                 break
         measured = ~pending
         mark_lost = not measured.any()
         if mark_lost:
-            out_pos = predicted
+            positions = predicted
         elif pending.any():
-            out_pos[pending] = self._estimate(mark, out_pos, measured, out_grad)
-        return out_pos, out_status, out_zncc, out_grad, mark_lost
+            positions[pending] = self._estimate(mark, positions, measured, gradients)
+        return positions, status, zncc, gradients, mark_lost
 
     def _estimate(
         self, mark: _Mark, positions: np.ndarray, measured: np.ndarray, gradients: np.ndarray
@@ -450,11 +489,11 @@ class MarkTracker:
 
     def _needs_update(self, status: np.ndarray, zncc: np.ndarray, gradients: np.ndarray) -> bool:
         s = self.settings
-        if (status == TrackStatus.LOST).any():
+        if (status == _LOST).any():
             return False
-        if (status == TrackStatus.REACQUIRED).any():
+        if (status == _REACQUIRED).any():
             return True
-        if np.nanmin(zncc) < s.update_zncc:
+        if zncc.min() < s.update_zncc:
             return True
         return float(np.abs(gradients).max()) > s.update_deformation
 

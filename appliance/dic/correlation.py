@@ -136,19 +136,21 @@ class Correlator:
         if self._reference is None:
             raise RuntimeError("prepare() must be called before measure()")
         n = self._points.shape[0]
-        start = np.zeros((n, 6))
-        if guess is not None:
-            g = np.asarray(guess, dtype=np.float64)
-            if g.shape not in ((n, 2), (n, 6)):
-                raise ValueError(f"guess must have shape ({n}, 2) or ({n}, 6), got {g.shape}")
-            start[:, : g.shape[1]] = g
+        if guess is None:
+            start = np.zeros((n, 6))
+        else:
+            start = np.asarray(guess, dtype=np.float64)
+            if start.shape not in ((n, 2), (n, 6)):
+                raise ValueError(f"guess must have shape ({n}, 2) or ({n}, 6), got {start.shape}")
         if self.search == "none":
             return Measurement(self.icgn.compute(target, start), None)
         found = self._search(target, start[:, :2])
+        seeded = np.zeros((n, 6))
+        seeded[:, : start.shape[1]] = start
         use = found.valid
-        start[use, :2] = found.displacement[use]
-        start[use, 2:] = found.gradient[use]
-        return Measurement(self.icgn.compute(target, start), found)
+        seeded[use, :2] = found.displacement[use]
+        seeded[use, 2:] = found.gradient[use]
+        return Measurement(self.icgn.compute(target, seeded), found)
 
     def _search(self, target: np.ndarray, guess: np.ndarray) -> IntegerMatch:
         common = dict(

@@ -1,6 +1,8 @@
 import numpy as np
 import pytest
+from scipy import ndimage
 
+from appliance.dic.bspline import PAD
 from appliance.dic.icgn import ICGN, ICGNResult, PointStatus, PreparedTarget
 from tests.unit.cosine_texture import CosineTexture
 
@@ -215,6 +217,29 @@ def test_indices_refine_any_subset_bit_for_bit(deformed_pair):
     assert_rows_identical(translation, icgn.compute(prepared, guess[:, :2]), np.array([8, 2]))
     empty = icgn.compute(prepared, np.zeros((0, 6)), indices=np.zeros(0, dtype=int))
     assert empty.u.shape == (0,) and empty.status.shape == (0,)
+
+
+def test_prefilter_and_spline_are_scipys_bit_for_bit(deformed_pair):
+    _, target, _ = deformed_pair
+    smoothed = ndimage.gaussian_filter(target, 0.8, mode="mirror", truncate=4.0)
+    expected = np.pad(ndimage.spline_filter(smoothed, order=3, mode="mirror"), PAD, mode="reflect")
+    assert np.array_equal(ICGN(prefilter_sigma=0.8).coefficients(target), expected)
+
+
+def test_serial_and_parallel_kernels_agree_bit_for_bit(deformed_pair):
+    """One thread runs the serial kernels, two the parallel ones; small batches go serial."""
+    reference, target, points = deformed_pair
+    rng = np.random.default_rng(8)
+    guess = np.c_[rng.integers(0, 2, (len(points), 2)), rng.normal(0.0, 0.01, (len(points), 4))]
+    results = []
+    for threads in (1, 2, None):
+        icgn = ICGN(subset=21, prefilter_sigma=0.8, threads=threads)
+        results.append((icgn.prepare(reference, points), icgn.compute(target, guess)))
+        for row in (np.array([5]), np.array([6, 2])):
+            assert_rows_identical(icgn.compute(target, guess[row], indices=row), results[0][1], row)
+    for status, result in results[1:]:
+        assert np.array_equal(status, results[0][0])
+        assert_rows_identical(result, results[0][1], np.arange(len(points)))
 
 
 def test_one_prepared_target_serves_every_icgn_with_its_prefilter(deformed_pair):

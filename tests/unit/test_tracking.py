@@ -134,6 +134,37 @@ def test_every_point_must_belong_to_one_mark(pattern):
         MarkTracker(image, POINTS[:2], [(0,), (0, 1)])
 
 
+def test_frame_dtype_and_layout_do_not_change_the_numbers(pattern):
+    """A uint8 frame, the same values as float64 and a view into a larger buffer track alike,
+    windows clipped at the edge included."""
+    settings = TrackerSettings(subset_px=31)
+    points = np.vstack([POINTS, [[CENTRE_X, 20.0]]])
+    marks = [*MARKS, (6,)]
+    reference = np.rint(synthetic.render(pattern, HEIGHT, WIDTH)).astype(np.uint8)
+    trackers = [MarkTracker(reference, points, marks, settings) for _ in range(3)]
+    canvas = np.zeros((HEIGHT + 10, WIDTH + 20), dtype=np.uint8)
+    for k in range(1, 5):
+        mapping = synthetic.UniaxialStretch(1 + 0.03 * k, axis="y", xc=CENTRE_X, yc=40.0)
+        image = np.rint(synthetic.render(pattern, HEIGHT, WIDTH, mapping)).astype(np.uint8)
+        canvas[5 : 5 + HEIGHT, 7 : 7 + WIDTH] = image
+        frames = [
+            tracker.track(frame, 0.1 * k)
+            for tracker, frame in zip(
+                trackers,
+                (image, image.astype(np.float64), canvas[5 : 5 + HEIGHT, 7 : 7 + WIDTH]),
+                strict=True,
+            )
+        ]
+        assert np.all(frames[0].measured)
+        for frame in frames[1:]:
+            assert np.array_equal(frame.positions, frames[0].positions)
+            assert np.array_equal(frame.gradients, frames[0].gradients)
+            assert np.array_equal(frame.zncc, frames[0].zncc)
+            assert np.array_equal(frame.status, frames[0].status)
+            assert frame.read_regions == frames[0].read_regions
+    assert any(r.y == 0 for r in frames[0].read_regions)
+
+
 def test_the_pixels_read_alone_track_to_the_same_numbers(pattern):
     """Frames rebuilt from the read regions only (zeros elsewhere) give identical results,
     through reference updates, a re-acquisition and windows clipped at the image edge."""
