@@ -156,8 +156,27 @@ class Service:
                 raise InputError(
                     f"[service] state_directory {directory}: cannot create ({exc.strerror})"
                 ) from None
+        self._check_watchdog()
         self.link.start()
         _warm_up_measurement()
+
+    def _check_watchdog(self) -> None:
+        """Refuse a frame period the watchdog cannot wait through (pings come with frames)."""
+        interval = self.notifier.watchdog_interval_s
+        if interval is None:
+            return
+        camera = self.config.camera
+        key, rate = (
+            ("frame_rate_hz", camera.frame_rate_hz)
+            if camera.frame_rate_hz
+            else ("min_frame_rate_hz", camera.min_frame_rate_hz)
+        )
+        period = max(1.0 / rate, (camera.exposure_us or 0.0) * 1e-6)
+        if interval <= 2 * period:
+            raise InputError(
+                f"[camera] {key}: a frame period of {period:g} s needs a watchdog interval "
+                f"above {2 * period:g} s (WatchdogSec is {interval:g} s)"
+            )
 
     def _idle_status(self) -> str:
         done = f"; {self.tests_run} tests run" if self.tests_run else ""

@@ -184,11 +184,20 @@ def test_a_stalled_measurement_stops_the_watchdog_and_sigterm_still_closes_the_r
     assert replayed["max_abs_diff_to_recorded"] == 0.0
 
 
-def test_bad_service_configuration_is_named_before_ready(tmp_path):
+@pytest.mark.parametrize(
+    ("camera", "watchdog_usec", "message"),
+    [
+        ('url = "aravis://192.0.2.1"', None, "aravis://192.0.2.1: only the simulated devices"),
+        ("min_frame_rate_hz = 0.5", 3_000_000, "[camera] min_frame_rate_hz: a frame period of 2"),
+    ],
+)
+def test_bad_service_configuration_is_named_before_ready(tmp_path, camera, watchdog_usec, message):
     port = free_tcp_port()
-    config = _config(tmp_path, port, camera='url = "aravis://192.0.2.1"')
-    with NotifyHarness([EXTENSOMETER, "serve", "--config", str(config)]) as service:
+    config = _config(tmp_path, port, camera=camera)
+    with NotifyHarness(
+        [EXTENSOMETER, "serve", "--config", str(config)], watchdog_usec=watchdog_usec
+    ) as service:
         assert service.wait(timeout=120) == 2
         assert not any(n.matches("READY=1") for n in service.messages)
-        assert "aravis://192.0.2.1: only the simulated devices" in service.stderr
+        assert message in service.stderr
         assert service.stderr.count("\n") == 1
