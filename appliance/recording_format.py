@@ -247,11 +247,6 @@ def number(value: Any) -> float:
     return math.nan if value is None else float(value)
 
 
-def numbers(values: Any) -> np.ndarray:
-    """A JSON number array as float64 (null -> NaN)."""
-    return np.array([number(v) for v in values], dtype=np.float64)
-
-
 def _encoding(image: np.ndarray) -> str:
     if image.dtype == np.uint8:
         return "mono8"

@@ -110,7 +110,6 @@ class RecordingReader:
         self.log_time_range_ns: tuple[int, int] | None = None
         self.complete = False
         self.damage: Damage | None = None
-        self.library = ""
 
     def meta(self, name: str) -> dict[str, str] | None:
         """The `extensometer.<name>` metadata record, if read."""
@@ -129,11 +128,6 @@ class RecordingReader:
         record = self.meta("recording")
         if record is None or record.get("format") != FORMAT_NAME:
             raise InputError(f"{self.path}: not an extensometer recording")
-
-    def read_header(self) -> None:
-        """Read until the first sample: the metadata and attachments written at the start."""
-        for _ in self._records(stop_at_first_message=True):
-            break
 
     def samples(self) -> Iterator[RecordedSample]:
         """Every whole sample in order, up to the end or the damage (then `damage` is set)."""
@@ -170,7 +164,7 @@ class RecordingReader:
         """Close the file."""
         self._file.close()
 
-    def _records(self, *, stop_at_first_message: bool = False) -> Iterator[tuple[str, Message]]:
+    def _records(self) -> Iterator[tuple[str, Message]]:
         self._file.seek(0)
         self.metadata.clear()
         self.attachments.clear()
@@ -206,8 +200,6 @@ class RecordingReader:
                 low, high = self.log_time_range_ns or (record.log_time, record.log_time)
                 self.log_time_range_ns = (min(low, record.log_time), max(high, record.log_time))
                 yield topic[0], record
-                if stop_at_first_message:
-                    return
             elif isinstance(record, DataEnd | Footer):
                 self.complete = isinstance(record, Footer) or self.complete
             intact = self._file.tell()
