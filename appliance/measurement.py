@@ -25,7 +25,7 @@ import numpy as np
 
 from appliance.frame_windows import ImageWindow, cut_windows
 from appliance.gauges import StrainGauges, StrainReading
-from appliance.tracking import MarkTracker
+from appliance.tracking import MarkTracker, TrackStatus
 from hal.camera.base import Frame
 from hal.frame.base import FrameState
 
@@ -76,6 +76,11 @@ class StrainSample:
     zeroed: bool = False
     image: np.ndarray | None = None
     metadata: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def points_lost(self) -> int:
+        """Points not measured in this frame."""
+        return int(np.count_nonzero(self.status == TrackStatus.LOST))
 
 
 @dataclass(frozen=True)

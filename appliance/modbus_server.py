@@ -65,7 +65,6 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import TimeoutError as FutureTimeoutError
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
 from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.server.requesthandler import ServerRequestHandler
@@ -88,7 +87,6 @@ from appliance.modbus_map import (
     StatusBit,
 )
 from appliance.run_state import RunState
-from appliance.tracking import TrackStatus
 
 if TYPE_CHECKING:
     from appliance.measurement import StrainSample
@@ -300,7 +298,7 @@ class StrainRegisterServer:
         reading = sample.reading
         machine = sample.machine
         stamp = facts.unix_time_ns(sample.timestamp_ns) if facts is not None else 0
-        lost = int(np.count_nonzero(sample.status == TrackStatus.LOST))
+        lost = sample.points_lost
         values = {
             "axial_strain": reading.engineering_strain,
             "transverse_strain": reading.transverse_strain,

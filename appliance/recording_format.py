@@ -390,7 +390,7 @@ def strain_record(sample: StrainSample) -> dict[str, Any]:
         "time_s": sample.time_s,
         **{name: getattr(reading, name) for name in STRAIN_FIELDS},
         "data_valid": sample.data_valid,
-        "points_lost": int((sample.status == TrackStatus.LOST).sum()),
+        "points_lost": sample.points_lost,
         "reference_updates": sample.reference_updates,
         "latency_ms": sample.latency_s * 1e3,
     }

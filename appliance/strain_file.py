@@ -16,7 +16,6 @@ from pathlib import Path
 from typing import Any
 
 from appliance.measurement import StrainSample
-from appliance.tracking import TrackStatus
 
 COLUMNS: tuple[str, ...] = (
     "index",
@@ -56,7 +55,7 @@ def sample_row(sample: StrainSample) -> dict[str, Any]:
         "elongation_mm": reading.elongation_mm,
         "gauge_length_mm": reading.gauge_length_mm,
         "data_valid": int(sample.data_valid),
-        "points_lost": int((sample.status == TrackStatus.LOST).sum()),
+        "points_lost": sample.points_lost,
         "reference_updates": sample.reference_updates,
         "crosshead_mm": machine.crosshead_mm if machine is not None else math.nan,
         "force_n": machine.force_n if machine is not None else math.nan,

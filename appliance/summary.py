@@ -26,7 +26,6 @@ import numpy as np
 from appliance.iso9513 import best_class
 from appliance.loop import LoopResult
 from appliance.measurement import StrainSample
-from appliance.tracking import TrackStatus
 
 REL_ERROR_MIN_STRAIN = 0.01
 SMALL_ELONGATION_UM = 300.0
@@ -66,7 +65,7 @@ class SampleRecord:
             strain=sample.reading.engineering_strain,
             elongation_mm=sample.reading.elongation_mm,
             valid=sample.data_valid,
-            points_lost=int((sample.status == TrackStatus.LOST).sum()),
+            points_lost=sample.points_lost,
             reference_updates=sample.reference_updates,
             true_strain=true_strain,
             true_elongation_mm=true_elongation_mm,

@@ -631,7 +631,7 @@ class _TestStream:
         machines = [sample.machine for sample in batch]
         self._send_series(FORCE, [m.force_n if m else math.nan for m in machines], clocks)
         self._send_series(CROSSHEAD, [m.crosshead_mm if m else math.nan for m in machines], clocks)
-        lost = [int(np.count_nonzero(s.status == TrackStatus.LOST)) for s in batch]
+        lost = [s.points_lost for s in batch]
         self._send_series(POINTS_LOST, lost, clocks)
         for sample, lost_points in zip(batch, lost, strict=True):
             self._show_sample(sample, lost_points)
@@ -787,7 +787,7 @@ class _TestStream:
         else:
             reading = sample.reading
             strain = reading.engineering_strain
-            lost = int(np.count_nonzero(sample.status == TrackStatus.LOST))
+            lost = sample.points_lost
             rows += [
                 ("frame", f"{sample.index} (t = {sample.time_s:.3f} s)"),
                 ("axial strain", f"{strain:.6f} ({100 * strain:.3f} %)"),
