@@ -1,8 +1,8 @@
 """Backends chosen by URL-like strings from configuration (after python-can's interfaces).
 
-A device is named by a URL whose scheme picks the backend: `sim://camera`, `sim://frame` now;
-`aravis://ADDRESS`, `v4l2:///dev/videoN`, `modbus-tcp://HOST:PORT`,
-`modbus-rtu:///dev/ttyX?baud=...` with the hardware backends. The table maps each scheme to
+A device is named by a URL whose scheme picks the backend: `sim://camera`, `sim://frame`
+(simulators), `aravis://ADDRESS` (GigE Vision), `v4l2:///dev/videoN`, `modbus-tcp://HOST:PORT`
+and `modbus-rtu:///dev/ttyX?baud=...` (frame controllers). The table maps each scheme to
 the module and class that implement it; modules are imported only when their scheme is used,
 so an appliance without Aravis installed still runs on a Modbus frame and a V4L2 camera.
 
@@ -23,11 +23,15 @@ from hal.frame.base import TensileFrame
 
 CAMERA_BACKENDS: dict[str, str] = {
     "sim": "hal.camera.sim:SimCamera",
+    "aravis": "hal.camera.aravis:AravisCamera",
+    "v4l2": "hal.camera.v4l2:V4l2Camera",
 }
 """Camera URL scheme -> "module:Class"."""
 
 FRAME_BACKENDS: dict[str, str] = {
     "sim": "hal.frame.sim:SimFrame",
+    "modbus-tcp": "hal.frame.modbus:ModbusFrame",
+    "modbus-rtu": "hal.frame.modbus:ModbusFrame",
 }
 """Tensile-frame URL scheme -> "module:Class"."""
 
