@@ -9,6 +9,8 @@ Subcommands:
     serve   run as a service: a test per start command, Modbus, Rerun, systemd watchdog.
     replay  measure a recorded test again from its recorded pixels.
     info    summarise a recording and check its integrity.
+    camera-check  grab frames from a camera and report size, format, rate and losses.
+    frame-check   read the frame controller's state and report it, with read rate and latency.
 
 Bad input ends with one line `extensometer: error: ...` naming the culprit and exit status 2.
 """
@@ -59,6 +61,8 @@ _non_negative_int = _number(int, lambda v: v >= 0, "must be >= 0")
 _non_negative_float = _number(float, lambda v: v >= 0, "must be a finite number >= 0")
 _finite_float = _number(float, lambda v: True, "is not finite")
 _positive_float = _number(float, lambda v: v > 0, "must be a finite number > 0")
+_frame_count = _number(int, lambda v: v >= 2, "must be >= 2")
+_read_count = _number(int, lambda v: v >= 1, "must be >= 1")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -137,6 +141,23 @@ def build_parser() -> argparse.ArgumentParser:
     )
     modbus.add_argument("--json", action="store_true", help="print JSON instead of a table")
     modbus.add_argument("--out", metavar="FILE", help="also write the JSON to FILE")
+    camera = benches.add_parser(
+        "camera",
+        help="GigE Vision acquisition rate and loss (the Aravis fake camera on loopback)",
+    )
+    camera.add_argument("--camera", metavar="URL", help="a camera instead of the fake one")
+    camera.add_argument("--frames", type=_frame_count, default=600, help="frames per setting")
+    camera.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    camera.add_argument("--out", metavar="FILE", help="also write the JSON to FILE")
+    frame = benches.add_parser(
+        "frame", help="frame controller state reads over Modbus TCP: rate and latency"
+    )
+    frame.add_argument("--frame", metavar="URL", help="a controller instead of the simulated one")
+    frame.add_argument(
+        "--duration", type=_positive_float, default=5.0, help="seconds per measurement (5)"
+    )
+    frame.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    frame.add_argument("--out", metavar="FILE", help="also write the JSON to FILE")
 
     _add_plan_parser(commands)
     _add_run_parser(commands)
@@ -225,6 +246,43 @@ def _add_run_parser(commands) -> None:
     )
     info.add_argument("recording", metavar="FILE.mcap", type=Path, help="a recording")
     info.add_argument("--json", action="store_true", help="print JSON on stdout")
+
+    camera_check = commands.add_parser(
+        "camera-check",
+        help="grab frames from a camera and report what arrived",
+        description=(
+            "Open the camera, free-run it, grab N frames and report image size, pixel "
+            "format, the frame rate achieved, lost frames, device timestamps and grey "
+            "levels. The first command to run on a new installation. Exit status 1 when "
+            "the camera cannot be opened or sends nothing, or frames were lost; 2 for a "
+            "bad URL or setting."
+        ),
+    )
+    camera_check.add_argument("--camera", metavar="URL", help="camera URL ([camera] url)")
+    camera_check.add_argument("--config", type=Path, help="TOML configuration ([camera] table)")
+    camera_check.add_argument("--frames", type=_frame_count, default=100, help="frames (100)")
+    camera_check.add_argument(
+        "--rate", type=_positive_float, default=30.0, help="frame rate asked for, Hz (30)"
+    )
+    camera_check.add_argument("--exposure-us", type=_positive_float, help="exposure, us")
+    camera_check.add_argument("--json", action="store_true", help="print JSON on stdout")
+
+    frame_check = commands.add_parser(
+        "frame-check",
+        help="read the frame controller's state and report it",
+        description=(
+            "Open the controller, read its state N times (nothing is written) and print "
+            "crosshead position, speed, force and running, with the read rate and latency. "
+            "Exit status 1 when the controller cannot be reached or answers with an error; "
+            "2 for a bad URL or register map."
+        ),
+    )
+    frame_check.add_argument("--frame", metavar="URL", help="controller URL ([frame] url)")
+    frame_check.add_argument(
+        "--config", type=Path, help="TOML configuration ([frame] table, register map)"
+    )
+    frame_check.add_argument("--reads", type=_read_count, default=50, help="reads (50)")
+    frame_check.add_argument("--json", action="store_true", help="print JSON on stdout")
 
 
 def _add_modbus_options(parser: argparse.ArgumentParser) -> None:
@@ -653,6 +711,41 @@ def _plan(args: argparse.Namespace) -> int:
     return 0
 
 
+def _device_check(args: argparse.Namespace) -> int:
+    from appliance import device_check
+    from appliance.config import Config, load_config
+    from hal.errors import HardwareConfigError, HardwareError
+
+    config = load_config(args.config) if args.config else Config()
+    try:
+        if args.command == "camera-check":
+            camera = device_check.camera_for_check(config, args.camera or config.camera.url)
+            report = device_check.check_camera(
+                camera,
+                config,
+                frames=args.frames,
+                rate_hz=args.rate,
+                exposure_us=args.exposure_us,
+            )
+            lines = device_check.camera_report_lines(report)
+            failed = report["lost"] > 0
+        else:
+            frame = device_check.frame_for_check(config, args.frame or config.frame.url)
+            report = device_check.check_frame(frame, reads=args.reads)
+            lines = device_check.frame_report_lines(report)
+            failed = False
+    except HardwareConfigError as error:
+        raise InputError(f"{args.command}: {error}") from None
+    except HardwareError as error:
+        print(f"extensometer: {args.command}: {error}", file=sys.stderr)
+        return 1
+    if args.json:
+        print(json.dumps(report, indent=2))
+    else:
+        print("\n".join(lines))
+    return 1 if failed else 0
+
+
 def _bench(args: argparse.Namespace) -> int:
     if args.bench == "accuracy":
         from appliance.bench.accuracy import run_accuracy_benchmark
@@ -662,6 +755,21 @@ def _bench(args: argparse.Namespace) -> int:
         from appliance.bench.modbus import run_modbus_benchmark
 
         return run_modbus_benchmark(Path(args.out) if args.out else None, args.json)
+    if args.bench == "camera":
+        from appliance.bench.camera import run_camera_benchmark
+
+        return run_camera_benchmark(
+            Path(args.out) if args.out else None, args.json, url=args.camera, frames=args.frames
+        )
+    if args.bench == "frame":
+        from appliance.bench.frame_client import run_frame_benchmark
+
+        return run_frame_benchmark(
+            Path(args.out) if args.out else None,
+            args.json,
+            url=args.frame,
+            duration_s=args.duration,
+        )
     if args.bench == "sim":
         from appliance.bench.simulated import run_simulated_benchmark
 
@@ -687,6 +795,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _serve(args)
         if args.command == "info":
             return _info(args)
+        if args.command in ("camera-check", "frame-check"):
+            return _device_check(args)
         return _bench(args)
     except InputError as error:
         print(f"extensometer: error: {error}", file=sys.stderr)

@@ -18,9 +18,13 @@ import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from appliance.errors import InputError, read_user_text
+from hal.errors import HardwareConfigError
+
+if TYPE_CHECKING:
+    from hal.frame.register_map import RegisterMap
 
 
 def _range(minimum: float | None = None, maximum: float | None = None, **extra: Any) -> dict:
@@ -37,12 +41,22 @@ class CameraConfig:
     frame rate that keeps the frame-to-frame motion of the marks inside the tracker's search,
     and no lower than `min_frame_rate_hz` (the rate the controller receives strain at), unless
     the exposure does not allow it.
+
+    `url` names the camera (`sim://camera`, `aravis://192.168.10.2`, `v4l2:///dev/video0`).
+    The sensor region `region_*_px` is given whole or not at all (left out = the full sensor).
+    A camera that goes away during a test is waited for up to `outage_timeout_s` while its
+    backend reconnects (strain is flagged not valid meanwhile); 0 = the first loss faults.
     """
 
     url: str = "sim://camera"
     exposure_us: float | None = field(default=None, metadata=_range(1.0, 1e7))
     gain_db: float = field(default=0.0, metadata=_range(0.0, 48.0))
-    pixel_format: str = field(default="Mono8", metadata={"choices": ("Mono8", "Mono12")})
+    pixel_format: str = field(default="Mono8", metadata={"choices": ("Mono8", "Mono12", "Mono16")})
+    region_x_px: int | None = field(default=None, metadata=_range(0, 65535))
+    region_y_px: int | None = field(default=None, metadata=_range(0, 65535))
+    region_width_px: int | None = field(default=None, metadata=_range(16, 65535))
+    region_height_px: int | None = field(default=None, metadata=_range(16, 65535))
+    outage_timeout_s: float = field(default=30.0, metadata=_range(0.0, 3600.0))
     frame_rate_hz: float | None = field(default=None, metadata=_range(0.1, 10000.0))
     min_frame_rate_hz: float = field(default=20.0, metadata=_range(0.1, 10000.0))
     blur_budget_px: float = field(default=1.0, metadata=_range(0.0, 100.0))
@@ -52,10 +66,22 @@ class CameraConfig:
 
 @dataclass(frozen=True)
 class FrameConfig:
-    """[frame]: the tensile frame's controller."""
+    """[frame]: the tensile frame's controller.
+
+    `url` names it (`sim://frame`, `modbus-tcp://192.168.10.5:502?unit=1`,
+    `modbus-rtu:///dev/ttyUSB0?baud=115200&parity=E`); empty = no controller (strain is
+    measured, force and crosshead are missing). A real controller is polled at `poll_rate_hz`
+    on its own thread. With `accepts_commands` the appliance starts the crosshead at the test
+    speed and stops it at the end; without, it only reads. `[frame.registers]` is the
+    controller's register map (`hal.frame.register_map`): `preset` and one table per
+    quantity overriding the preset's entry key by key; left out, the generic controller's
+    map.
+    """
 
     url: str = "sim://frame"
     accepts_commands: bool = True
+    poll_rate_hz: float = field(default=100.0, metadata=_range(1.0, 1000.0))
+    registers: dict = field(default_factory=dict, metadata={"table": True})
 
 
 @dataclass(frozen=True)
@@ -93,21 +119,28 @@ class GaugeConfig:
 
     Marks are placed centred on the specimen: each axial mark is a line of `points_per_mark`
     points `mark_spacing_px` apart along the axis. `length_mm` left out takes the simulated
-    specimen's gauge length; `transverse_width_mm` = 0 means no transverse gauge.
+    specimen's gauge length; `transverse_width_mm` = 0 means no transverse gauge. The marks
+    are centred on (`centre_x_px`, `centre_y_px`) of the reference image (left out: the
+    simulated specimen's centre, or the image centre with a real camera) along a loading axis
+    `axis_deg` degrees from the image's +x towards +y (90 = vertical specimen).
     """
 
     length_mm: float | None = field(default=None, metadata=_range(0.1, 10000.0))
     points_per_mark: int = field(default=3, metadata=_range(1, 50))
     mark_spacing_px: float = field(default=8.0, metadata=_range(0.0, 1000.0))
     transverse_width_mm: float = field(default=0.0, metadata=_range(0.0, 1000.0))
+    centre_x_px: float | None = field(default=None, metadata=_range(0.0, 65535.0))
+    centre_y_px: float | None = field(default=None, metadata=_range(0.0, 65535.0))
+    axis_deg: float = field(default=90.0, metadata=_range(-180.0, 180.0))
 
 
 @dataclass(frozen=True)
 class RunConfig:
     """[run]: test speed and when the test ends.
 
-    `speed_mm_min` left out takes the simulated material's standard speed; `until_strain` = 0
-    means no strain limit.
+    `speed_mm_min` left out takes the simulated material's standard speed (a real frame needs
+    it, for the exposure plan and the start command); `until_strain` = 0 means no strain
+    limit.
     """
 
     speed_mm_min: float | None = field(default=None, metadata=_range(0.001, 10000.0))
@@ -236,6 +269,10 @@ def parse_address(text: str, where: str) -> tuple[str, int]:
 
 
 def _check_value(value: Any, kind: Any, meta: dict, where: str) -> Any:
+    if meta.get("table"):
+        if not isinstance(value, dict):
+            raise InputError(f"{where}: must be a table")
+        return value
     if typing.get_origin(kind) is tuple:
         if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
             raise InputError(f"{where}: must be a list of strings, got {value!r}")
@@ -345,7 +382,35 @@ def config_from_table(table: dict[str, Any], source: str = "<config>") -> Config
         raise InputError(f"{source}: a configuration must be a table")
     config = _build(Config, table, source, None)
     _check_relations(config, source)
+    _check_region(config, source)
+    if config.frame.registers:
+        register_map_of(config, source)
     return config
+
+
+def _check_region(config: Config, source: str) -> None:
+    c = config.camera
+    keys = ("region_x_px", "region_y_px", "region_width_px", "region_height_px")
+    given = [getattr(c, k) is not None for k in keys]
+    if any(given) and not all(given):
+        missing = keys[given.index(False)]
+        raise InputError(f"{source}: [camera] {missing}: required with the other region keys")
+
+
+def register_map_of(config: Config, source: str = "<config>") -> RegisterMap:
+    """The controller register map of `[frame.registers]`; the generic controller's
+    (`hal.frame.register_map.GENERIC_CONTROLLER`) when the table is left out.
+
+    Raises InputError naming the file, the register table and the key.
+    """
+    from hal.frame.register_map import GENERIC_CONTROLLER, RegisterMap
+
+    if not config.frame.registers:
+        return GENERIC_CONTROLLER
+    try:
+        return RegisterMap.from_table(config.frame.registers, f"{source}: [frame.registers]")
+    except HardwareConfigError as exc:
+        raise InputError(str(exc)) from None
 
 
 def merge_tables(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:

@@ -8,7 +8,10 @@ outside, for `extensometer run` (one test) and `extensometer serve` (one test af
   commands (stop and zero act on the running test; start and the gauge length set point are
   the caller's to decide, through `on_start` and `on_gauge_length`);
 * the viewer (`appliance.viewer`), an output of every test;
-* the service manager's watchdog, pinged from the measurement thread with every frame.
+* the service manager's watchdog, pinged from the measurement thread with every frame, and
+  from the acquisition thread while the loop waits through a camera outage (the loop is
+  alive; a hung one stops the pings);
+* device events (`appliance.loop.DeviceEvent`): a camera outage clears data-valid.
 
 `run_arguments()` gives the keyword arguments of `run_test` that connect a test.
 """
@@ -21,7 +24,7 @@ from collections.abc import Callable
 from typing import Any
 
 from appliance.config import Config
-from appliance.loop import LoopResult, MeasurementLoop
+from appliance.loop import DeviceEvent, LoopResult, MeasurementLoop
 from appliance.measurement import StrainSample
 from appliance.modbus_server import StrainRegisterServer
 from appliance.outputs import RunFacts, RunOutput
@@ -99,6 +102,7 @@ class LiveLink:
             "immediate_sinks": [self._on_sample],
             "on_transition": self._transition,
             "on_loop": self._attach,
+            "device_listeners": [self._on_device_event],
         }
 
     def _attach(self, loop: MeasurementLoop) -> None:
@@ -112,6 +116,12 @@ class LiveLink:
 
     def _on_sample(self, sample: StrainSample) -> None:
         self.modbus.publish(sample, self._facts)
+        if self.notifier is not None:
+            self.notifier.watchdog()
+
+    def _on_device_event(self, event: DeviceEvent) -> None:
+        if event.device == "camera":
+            self.modbus.set_camera_lost(not event.available)
         if self.notifier is not None:
             self.notifier.watchdog()
 

@@ -18,6 +18,19 @@ Timestamps come from the device (`Frame.timestamp_ns`). Latency is wall time fro
 the camera delivers a frame to the moment its strain sample is complete, so it measures this
 program and nothing of the camera's transport.
 
+Devices that go away (real hardware):
+
+* A camera outage (`fetch` raising `HardwareConnectError` or `HardwareTimeout`) is waited
+  through for up to `camera_outage_timeout_s` while the backend reconnects: no samples are
+  measured, listeners hear `DeviceEvent`s (the Modbus registers clear data-valid, the
+  watchdog is still fed since the loop itself is alive), and the run faults only when the
+  outage outlasts the timeout. A camera that comes back with its frame counter or clock
+  restarted is re-based: the device time continues from the last frame by the host time
+  that passed (the original stamp stays in the frame's metadata as `device_timestamp_ns`).
+* A controller that cannot be read leaves the sample's `machine` None (its force and
+  crosshead are missing, and flagged) while the strain is still measured; listeners hear
+  when the controller is lost and when it is back.
+
 The run follows `appliance.run_state`: ARMED while the reference is taken, RUNNING while
 measuring, STOPPING while the queues drain, then IDLE; ABORTED on an operator interrupt and
 FAULT on an error of a device or of the measurement, each with its reason. Samples measured
@@ -26,6 +39,7 @@ before an abort or a fault are kept and published.
 
 from __future__ import annotations
 
+import dataclasses
 import queue
 import threading
 import time
@@ -38,8 +52,34 @@ from appliance.measurement import BreakDetection, FrameMeasurer, StopCriteria, S
 from appliance.run_state import RunEvent, RunState, RunStateMachine
 from appliance.tracking import MarkTracker
 from hal.camera.base import Camera, Frame
-from hal.errors import HardwareError, HardwareTimeout
-from hal.frame.base import TensileFrame
+from hal.errors import HardwareConnectError, HardwareError, HardwareTimeout
+from hal.frame.base import FrameState, TensileFrame
+
+OUTAGE_RETRY_S = 0.05
+"""Pause between fetch attempts while the camera is away (its backend paces reconnects)."""
+
+
+@dataclass(frozen=True)
+class DeviceEvent:
+    """A device went away, is still away, or came back during a run.
+
+    Attributes:
+        device: "camera" or "frame" (the controller).
+        url: the device's URL.
+        kind: "lost" (first failure), "waiting" (each further failed attempt, camera only)
+            or "restored".
+        text: one line: the error, or how long the device was away.
+    """
+
+    device: str
+    url: str
+    kind: str
+    text: str
+
+    @property
+    def available(self) -> bool:
+        """Whether the device is delivering again."""
+        return self.kind == "restored"
 
 
 @dataclass
@@ -55,6 +95,10 @@ class LoopResult:
         latencies_s: per-sample latency, s.
         tracking_time_s: wall time spent tracking (the measurement's own cost).
         final_state: the run state at the end.
+        camera_outages: times the camera went away during the run.
+        camera_outage_s: total time without the camera, s (wall time).
+        controller_outages: times the controller could not be read after it had been.
+        samples_without_controller: frames acquired without the controller's state.
     """
 
     exit_status: str = "completed"
@@ -64,6 +108,10 @@ class LoopResult:
     latencies_s: list[float] = field(default_factory=list)
     tracking_time_s: float = 0.0
     final_state: RunState = RunState.IDLE
+    camera_outages: int = 0
+    camera_outage_s: float = 0.0
+    controller_outages: int = 0
+    samples_without_controller: int = 0
 
 
 Sink = Callable[[StrainSample], None]
@@ -87,6 +135,11 @@ class MeasurementLoop:
         start_speed_mm_min: if set and the controller accepts commands, start the crosshead
             at this speed when the run starts and stop it at the end.
         fetch_timeout_s: timeout of every frame fetch.
+        break_detection: how a break is recognised.
+        camera_outage_timeout_s: how long a camera outage is waited through before the run
+            faults; 0 = the first connection loss or timeout is a fault.
+        device_listeners: called with every `DeviceEvent` (on the acquisition thread; fast,
+            non-blocking work only).
         wall: wall clock, s (injected for tests).
     """
 
@@ -104,6 +157,8 @@ class MeasurementLoop:
         start_speed_mm_min: float | None = None,
         fetch_timeout_s: float = 2.0,
         break_detection: BreakDetection | None = None,
+        camera_outage_timeout_s: float = 0.0,
+        device_listeners: Sequence[Callable[[DeviceEvent], None]] = (),
         wall: Callable[[], float] = time.perf_counter,
     ) -> None:
         self.camera = camera
@@ -116,7 +171,14 @@ class MeasurementLoop:
         self.start_speed_mm_min = start_speed_mm_min
         self.fetch_timeout_s = fetch_timeout_s
         self.break_detection = break_detection or BreakDetection()
+        self.camera_outage_timeout_s = camera_outage_timeout_s
+        self.device_listeners = list(device_listeners)
         self._wall = wall
+        self._outage_since: float | None = None
+        self._controller_lost = False
+        self._time_offset_ns = 0
+        self._last_timestamp_ns = 0
+        self._last_delivered_s = 0.0
         self._frames: queue.Queue = queue.Queue(maxsize=queue_size)
         self._samples: queue.Queue = queue.Queue(maxsize=queue_size)
         self._stop = threading.Event()
@@ -143,6 +205,8 @@ class MeasurementLoop:
             reference = self.camera.fetch(self.fetch_timeout_s)
             self._reference_time_ns = reference.timestamp_ns
             self._last_frame_id = reference.frame_id
+            self._last_timestamp_ns = reference.timestamp_ns
+            self._last_delivered_s = time.monotonic()
             tracker, gauges = self.setup(reference)
         except Exception as exc:  # noqa: BLE001 - a failed start is a FAULT with its reason
             return self._fail_before_start(exc)
@@ -264,11 +328,21 @@ class MeasurementLoop:
     def _acquire(self) -> None:
         try:
             while not self._stop.is_set():
-                frame = self.camera.fetch(self.fetch_timeout_s)
+                try:
+                    frame = self.camera.fetch(self.fetch_timeout_s)
+                except (HardwareConnectError, HardwareTimeout) as exc:
+                    self._camera_away(exc)
+                    continue
                 delivered = self._wall()
-                machine = self.frame.read_state() if self.frame is not None else None
+                if self._outage_since is not None:
+                    frame = self._camera_back(frame)
+                elif self._time_offset_ns:
+                    frame = self._rebased(frame, self._time_offset_ns)
+                machine = self._read_machine()
                 gap = frame.frame_id - self._last_frame_id - 1
                 self._last_frame_id = frame.frame_id
+                self._last_timestamp_ns = frame.timestamp_ns
+                self._last_delivered_s = time.monotonic()
                 if gap > 0:
                     self._result.frames_dropped += gap
                 item = (frame, machine, delivered)
@@ -280,7 +354,72 @@ class MeasurementLoop:
                     except queue.Full:
                         self._result.frames_dropped += 1
         finally:
+            if self._outage_since is not None:
+                self._result.camera_outage_s += time.monotonic() - self._outage_since
+                self._outage_since = None
             self._put(self._frames, _END, force=True)
+
+    def _emit(self, event: DeviceEvent) -> None:
+        for listener in self.device_listeners:
+            listener(event)
+
+    def _camera_away(self, exc: HardwareError) -> None:
+        """A fetch failed: wait the outage through, or fault when it has lasted too long."""
+        now = time.monotonic()
+        if self.camera_outage_timeout_s <= 0:
+            raise exc
+        first = self._outage_since is None
+        if first:
+            self._outage_since = now
+            self._result.camera_outages += 1
+        away_s = now - self._outage_since
+        if away_s > self.camera_outage_timeout_s:
+            raise HardwareConnectError(
+                f"{self.camera.url}: camera away for {away_s:.1f} s "
+                f"(outage timeout {self.camera_outage_timeout_s:g} s): {exc}"
+            )
+        self._emit(DeviceEvent("camera", self.camera.url, "lost" if first else "waiting", str(exc)))
+        self._stop.wait(OUTAGE_RETRY_S)
+
+    def _camera_back(self, frame: Frame) -> Frame:
+        """The first frame after an outage: end the outage, re-base a restarted camera."""
+        away_s = time.monotonic() - self._outage_since
+        self._result.camera_outage_s += away_s
+        self._outage_since = None
+        if frame.frame_id <= self._last_frame_id:
+            self._last_frame_id = frame.frame_id - 1
+        host_elapsed_ns = int((time.monotonic() - self._last_delivered_s) * 1e9)
+        expected_ns = self._last_timestamp_ns + host_elapsed_ns
+        stamped = frame.timestamp_ns + self._time_offset_ns
+        if stamped <= self._last_timestamp_ns or abs(stamped - expected_ns) > 1_000_000_000:
+            self._time_offset_ns = expected_ns - frame.timestamp_ns
+        self._emit(DeviceEvent("camera", self.camera.url, "restored", f"back after {away_s:.1f} s"))
+        return self._rebased(frame, self._time_offset_ns) if self._time_offset_ns else frame
+
+    @staticmethod
+    def _rebased(frame: Frame, offset_ns: int) -> Frame:
+        metadata = {**frame.metadata, "device_timestamp_ns": frame.timestamp_ns}
+        return dataclasses.replace(
+            frame, timestamp_ns=frame.timestamp_ns + offset_ns, metadata=metadata
+        )
+
+    def _read_machine(self) -> FrameState | None:
+        """The controller's state for this frame; None (and an event) when it cannot be read."""
+        if self.frame is None:
+            return None
+        try:
+            state = self.frame.read_state()
+        except HardwareError as exc:
+            self._result.samples_without_controller += 1
+            if not self._controller_lost:
+                self._controller_lost = True
+                self._result.controller_outages += 1
+                self._emit(DeviceEvent("frame", self.frame.url, "lost", str(exc)))
+            return None
+        if self._controller_lost:
+            self._controller_lost = False
+            self._emit(DeviceEvent("frame", self.frame.url, "restored", "readings again"))
+        return state
 
     def _track(self, tracker: MarkTracker, gauges: StrainGauges, criteria: StopCriteria) -> None:
         measurer = FrameMeasurer(

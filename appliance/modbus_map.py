@@ -153,19 +153,31 @@ class StatusBit(enum.IntFlag):
     REFERENCE_UPDATED = 1 << 3
     CALIBRATING = 1 << 4
     FAULT = 1 << 5
+    CAMERA_LOST = 1 << 6
+    NO_CONTROLLER_DATA = 1 << 7
 
 
 STATUS_BIT_MEANINGS: tuple[tuple[StatusBit, str], ...] = (
     (
         StatusBit.DATA_VALID,
-        "data valid (the latest sample is valid and the run is running or stopping; any other "
-        "run state clears it, so a stale strain is never flagged valid)",
+        "data valid (the latest sample is valid, the camera is delivering and the run is "
+        "running or stopping; any other run state, or a camera outage, clears it, so a stale "
+        "strain is never flagged valid)",
     ),
     (StatusBit.TRACKING, "tracking (run state running)"),
     (StatusBit.POINT_LOST, "point lost (a point was lost in the latest sample)"),
     (StatusBit.REFERENCE_UPDATED, "reference updated (in the latest sample)"),
     (StatusBit.CALIBRATING, "calibrating (run state armed: taking the reference)"),
     (StatusBit.FAULT, "fault (run state fault)"),
+    (
+        StatusBit.CAMERA_LOST,
+        "camera lost (the camera went away during the test and is being reconnected)",
+    ),
+    (
+        StatusBit.NO_CONTROLLER_DATA,
+        "no controller data (the latest sample has no reading of the frame's controller: "
+        "force and crosshead are NaN)",
+    ),
 )
 
 RUN_STATE_CODES: Mapping[RunState, int] = {

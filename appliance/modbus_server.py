@@ -13,7 +13,9 @@ measurement never waits for the network:
 * Before the first sample every float of the measurement block reads NaN and `status` has no
   data-valid bit.
 * `set_run_state(state)` updates the state bits and the run-state code; `tick()` moves the
-  heartbeat while no frames come, so the controller sees the appliance alive.
+  heartbeat while no frames come, so the controller sees the appliance alive;
+  `set_camera_lost(lost)` clears data-valid and sets `camera lost` while the camera is away
+  (no samples come then, so the latest one must not stay flagged valid).
 * A client's command write calls `on_command(name, value)` on the server's thread:
   ("start" | "stop" | "zero", None) or ("gauge_length", mm). It returns whether the command
   was accepted in the current run state (`command_result`, `command_counter`); it must return
@@ -210,6 +212,7 @@ class StrainRegisterServer:
         self._state = RunState.IDLE
         self._sample_bits = StatusBit(0)
         self._sample_valid = False
+        self._camera_lost = False
         self._heartbeat = 0
         self._command_counter = 0
         self._entries = [modbus_map.register_at(address) for address in range(MAP_SIZE)]
@@ -319,6 +322,8 @@ class StrainRegisterServer:
             for start, block in self._sample_parts
         ]
         bits = StatusBit(0)
+        if machine is None:
+            bits |= StatusBit.NO_CONTROLLER_DATA
         if lost:
             bits |= StatusBit.POINT_LOST
         if sample.reference_updates:
@@ -335,6 +340,14 @@ class StrainRegisterServer:
         """The run's state changed: state bits of `status` and the `run_state` code."""
         with self._lock:
             self._state = state
+            if state is RunState.ARMED:
+                self._camera_lost = False
+            self._write_state_registers()
+
+    def set_camera_lost(self, lost: bool) -> None:
+        """The camera went away (data valid cleared, `camera lost` set) or came back."""
+        with self._lock:
+            self._camera_lost = lost
             self._write_state_registers()
 
     def tick(self) -> None:
@@ -384,7 +397,9 @@ class StrainRegisterServer:
         """Status, run state and heartbeat from the current state (caller holds the lock)."""
         state = self._state
         bits = self._sample_bits
-        if self._sample_valid and state in _VALID_STATES:
+        if self._camera_lost:
+            bits |= StatusBit.CAMERA_LOST
+        elif self._sample_valid and state in _VALID_STATES:
             bits |= StatusBit.DATA_VALID
         if state is RunState.RUNNING:
             bits |= StatusBit.TRACKING

@@ -30,21 +30,32 @@ from typing import Any, TextIO
 import numpy as np
 
 from appliance import __version__
-from appliance.config import Config
+from appliance.config import Config, register_map_of
 from appliance.errors import InputError
 from appliance.gauges import Calibration, StrainGauges, StrainGaugesLayout, place_marks
-from appliance.loop import MeasurementLoop
+from appliance.loop import DeviceEvent, MeasurementLoop
 from appliance.measurement import StopCriteria, StrainSample
 from appliance.optics import Optics
 from appliance.outputs import RunFacts, RunOutput
 from appliance.planner import ExposurePlan, motion_blur_length, plan_exposure
+from appliance.polled_frame import PolledFrame
 from appliance.recorder import McapRecorder
 from appliance.run_state import RunStateMachine, Transition
 from appliance.strain_file import StrainCsvWriter
 from appliance.summary import RunSummary, SampleRecord
 from appliance.tracking import MarkTracker, TrackerSettings
-from hal.camera.base import CameraSettings, PixelFormat, TriggerInfo, TriggerMode
+from hal.camera.base import (
+    Camera,
+    CameraSettings,
+    Frame,
+    PixelFormat,
+    Region,
+    TriggerInfo,
+    TriggerMode,
+)
 from hal.clock import Pace
+from hal.frame.base import TensileFrame
+from hal.registry import camera_from_url, frame_from_url
 
 TRUTH_COLUMNS = ("true_engineering_strain", "true_elongation_mm", "strain_error")
 
@@ -188,6 +199,131 @@ def build_measurement(
     return tracker, gauges
 
 
+@dataclass
+class _Rig:
+    """The devices of a test and what is known of them before the reference is taken."""
+
+    camera: Camera
+    frame: TensileFrame | None
+    optics: Optics
+    speed_mm_min: float
+    gauge_length_mm: float
+    centre_px: Callable[[Frame], tuple[float, float]]
+    commands: bool
+    block_when_full: bool
+    world: Any = None
+
+
+def _sim_rig(config: Config) -> _Rig:
+    from appliance.sim.world import PRESETS, SimWorld
+
+    if not config.frame.url.startswith("sim://"):
+        raise InputError(
+            f"[frame] url: {config.frame.url or 'empty'}: the simulated test needs the "
+            "simulated frame (sim://frame)"
+        )
+    optics = _optics(config, PRESETS[config.sim.material].optics)
+    world = SimWorld.from_config(config, optics)
+    g = config.gauge
+    centre = (
+        (g.centre_x_px, g.centre_y_px)
+        if g.centre_x_px is not None and g.centre_y_px is not None
+        else world.specimen_centre_px
+    )
+    return _Rig(
+        camera=world.camera,
+        frame=world.frame,
+        optics=optics,
+        speed_mm_min=world.speed_mm_min,
+        gauge_length_mm=config.gauge.length_mm or world.gauge_length_mm,
+        centre_px=lambda reference: centre,
+        commands=True,
+        block_when_full=world.pace is Pace.FAST,
+        world=world,
+    )
+
+
+def _hardware_rig(config: Config) -> _Rig:
+    """The configured camera and controller; every fact the simulator would know must be
+    configured (optics, gauge length, test speed)."""
+    for key, url in (("[camera] url", config.camera.url), ("[frame] url", config.frame.url)):
+        if url.startswith("sim://"):
+            raise InputError(f"{key}: {url} is simulated: run with --sim, or name a real device")
+    camera = camera_from_url(config.camera.url)
+    optics = _optics(config, None)
+    if config.gauge.length_mm is None:
+        raise InputError("[gauge] length_mm: required with a real specimen")
+    speed = config.run.speed_mm_min
+    if speed is None:
+        raise InputError("[run] speed_mm_min: required with a real frame (exposure plan)")
+    frame: TensileFrame | None = None
+    if config.frame.url:
+        controller = frame_from_url(
+            config.frame.url,
+            register_map=register_map_of(config, "[frame.registers]"),
+            accepts_commands=config.frame.accepts_commands,
+        )
+        frame = PolledFrame(controller, rate_hz=config.frame.poll_rate_hz)
+    g = config.gauge
+
+    def centre(reference: Frame) -> tuple[float, float]:
+        height, width = reference.image.shape[:2]
+        x = g.centre_x_px if g.centre_x_px is not None else (width - 1) / 2
+        y = g.centre_y_px if g.centre_y_px is not None else (height - 1) / 2
+        return float(x), float(y)
+
+    return _Rig(
+        camera=camera,
+        frame=frame,
+        optics=optics,
+        speed_mm_min=speed,
+        gauge_length_mm=config.gauge.length_mm,
+        centre_px=centre,
+        commands=frame is not None and config.frame.accepts_commands,
+        block_when_full=False,
+    )
+
+
+def check_devices(config: Config, *, simulate: bool) -> None:
+    """Check, without opening anything, that the configured devices can run a test: the URLs
+    name known backends with valid options, and what a real test needs is configured.
+
+    Raises:
+        InputError: naming the key at fault.
+        HardwareError: a backend refusing its URL.
+    """
+    if simulate:
+        _sim_rig(config)
+    else:
+        _hardware_rig(config)
+
+
+def _region(config: Config) -> Region | None:
+    c = config.camera
+    if c.region_width_px is None:
+        return None
+    return Region(c.region_x_px or 0, c.region_y_px or 0, c.region_width_px, c.region_height_px)
+
+
+def _check_marks_inside(points: np.ndarray, shape: tuple[int, ...], subset_px: int) -> None:
+    """Refuse marks on which not even the smallest subset fits in the image (a gauge length
+    too long for the field of view, or a centre off the image)."""
+    height, width = shape[:2]
+    half = subset_px // 2
+    x, y = points[:, 0], points[:, 1]
+    if (
+        x.min() < half
+        or y.min() < half
+        or x.max() > width - 1 - half
+        or y.max() > height - 1 - half
+    ):
+        raise InputError(
+            f"[gauge] length_mm: the marks span x {x.min():.0f}..{x.max():.0f}, "
+            f"y {y.min():.0f}..{y.max():.0f} px, outside the {width}x{height} image less half "
+            f"the smallest subset ({half} px): shorten the gauge or move its centre"
+        )
+
+
 def run_test(
     config: Config,
     *,
@@ -199,6 +335,7 @@ def run_test(
     immediate_sinks: Sequence[Callable[[StrainSample], None]] = (),
     on_transition: Callable[[Transition], None] | None = None,
     on_loop: Callable[[MeasurementLoop], None] | None = None,
+    device_listeners: Sequence[Callable[[DeviceEvent], None]] = (),
     test_id: str = "",
 ) -> RunOutcome:
     """Run one test as configured; see the module docstring.
@@ -215,6 +352,8 @@ def run_test(
         on_transition: called at every change of the run state.
         on_loop: called with the measurement loop before it runs (to stop or zero it from
             another thread).
+        device_listeners: called with every `appliance.loop.DeviceEvent` (a camera or
+            controller lost or back), on the acquisition thread.
         test_id: names the test in the recording and the viewer.
 
     Raises:
@@ -222,25 +361,22 @@ def run_test(
             cannot be created.
         HardwareError: a device that cannot be opened or configured.
     """
-    if not simulate:
-        raise InputError(
-            "run: only the simulated devices are available in this version (use --sim)"
-        )
-    from appliance.sim.world import PRESETS, SimWorld
-
-    optics = _optics(config, PRESETS[config.sim.material].optics)
-    world = SimWorld.from_config(config, optics)
-    speed = world.speed_mm_min
+    rig = _sim_rig(config) if simulate else _hardware_rig(config)
+    optics, speed = rig.optics, rig.speed_mm_min
     plan = exposure_for(config, optics, speed)
     calibration = Calibration.from_optics(optics.pixel_size_um, optics.magnification)
-    gauge_length_mm = config.gauge.length_mm or world.gauge_length_mm
+    gauge_length_mm = rig.gauge_length_mm
     records: list[SampleRecord] = []
     recorder = None
     if record_path is not None:
         recorder = McapRecorder(
             record_path,
             config.record,
-            truth=lambda sample: (records[-1].true_strain, records[-1].true_elongation_mm),
+            truth=(
+                (lambda sample: (records[-1].true_strain, records[-1].true_elongation_mm))
+                if simulate
+                else None
+            ),
         )
     every_output: list[RunOutput] = ([recorder] if recorder is not None else []) + list(outputs)
     listeners = [on_transition] if on_transition is not None else []
@@ -252,32 +388,34 @@ def run_test(
             listener(record)
 
     state = RunStateMachine(on_transition=transition)
-    camera, frame = world.camera, world.frame
+    camera, frame = rig.camera, rig.frame
     try:
         camera.open()
-        frame.open()
-        pixel_format = (
-            PixelFormat.MONO8 if config.camera.pixel_format == "Mono8" else PixelFormat.MONO12
-        )
-        camera.configure(
+        if frame is not None:
+            frame.open()
+        in_force = camera.configure(
             CameraSettings(
                 exposure_us=plan.exposure_s * 1e6,
                 gain_db=config.camera.gain_db,
-                pixel_format=pixel_format,
+                region=_region(config),
+                pixel_format=PixelFormat(config.camera.pixel_format),
             )
         )
         camera.prepare(TriggerInfo(mode=TriggerMode.INTERNAL, rate_hz=1.0 / plan.frame_period_s))
     except BaseException:
         if recorder is not None:
             recorder.close()
+        camera.close()
+        if frame is not None:
+            frame.close()
         raise
 
     extra = {
-        "material": config.sim.material,
+        **({"material": config.sim.material} if simulate else {}),
         "speed_mm_min": speed,
         "gauge_length_mm": gauge_length_mm,
         "scale_mm_per_px": calibration.scale_mm_per_px,
-        "exposure_us": plan.exposure_s * 1e6,
+        "exposure_us": in_force.exposure_us,
         "frame_rate_hz": 1.0 / plan.frame_period_s,
         "blur_px_at_crosshead_speed": plan.blur_px,
         "blur_budget_met": bool(plan.budget_met),
@@ -288,15 +426,18 @@ def run_test(
         g = config.gauge
         transverse = g.transverse_width_mm or None
         points, layout = place_marks(
-            world.specimen_centre_px,
+            rig.centre_px(reference),
             gauge_length_mm,
             calibration,
+            axis_deg=g.axis_deg,
             mark_width_px=g.mark_spacing_px * (g.points_per_mark - 1),
             points_per_mark=g.points_per_mark,
             transverse_width_mm=transverse,
             along_axis=True,
         )
-        state_of_run["truth"] = world.gauge_truth(points, layout.axial, reference)
+        _check_marks_inside(points, reference.image.shape, config.tracking.min_subset_px)
+        if rig.world is not None:
+            state_of_run["truth"] = rig.world.gauge_truth(points, layout.axial, reference)
         state_of_run["points"] = points
         tracker, gauges = build_measurement(config, reference.image, points, layout, calibration)
         exposure_end_ns = reference.timestamp_ns + int(round(reference.exposure_us * 1e3))
@@ -311,20 +452,23 @@ def run_test(
             epoch_offset_ns=time.time_ns() - exposure_end_ns,
             devices={
                 "camera": camera.url,
-                "frame": frame.url,
+                "frame": frame.url if frame is not None else "",
                 "software": f"extensometer {__version__}",
             },
-            facts={"test_id": test_id, "simulated": True, **extra},
+            facts={"test_id": test_id, "simulated": simulate, **extra},
         )
         for output in every_output:
             output.begin(facts)
         return tracker, gauges
 
     def record(sample: StrainSample) -> None:
-        records.append(SampleRecord.of(sample, *state_of_run["truth"].at(sample)))
+        truth = state_of_run.get("truth")
+        records.append(
+            SampleRecord.of(sample, *truth.at(sample)) if truth else SampleRecord.of(sample)
+        )
         state_of_run["last_time_s"] = sample.time_s
-        if sample.data_valid:
-            blur = state_of_run["truth"].blur_px(sample)
+        if sample.data_valid and truth is not None:
+            blur = truth.blur_px(sample)
             state_of_run["max_blur_px"] = max(state_of_run.get("max_blur_px", 0.0), blur)
 
     def truth_columns(sample: StrainSample) -> dict[str, float]:
@@ -342,19 +486,29 @@ def run_test(
         if out_dir is not None:
             out_dir.mkdir(parents=True, exist_ok=True)
             csv_path = out_dir / "strain.csv"
-            writer = StrainCsvWriter(csv_path, TRUTH_COLUMNS, truth_columns)
+            writer = (
+                StrainCsvWriter(csv_path, TRUTH_COLUMNS, truth_columns)
+                if simulate
+                else StrainCsvWriter(csv_path)
+            )
             sinks.append(writer)
     except BaseException:
         if recorder is not None:
             recorder.close()
         camera.close()
-        frame.close()
+        if frame is not None:
+            frame.close()
         raise
     sinks.extend(every_output)
     bar = _Progress(progress) if progress is not None else None
     if bar is not None:
         sinks.append(bar)
     until_strain = config.run.until_strain or None
+    device_events: list[Callable[[DeviceEvent], None]] = list(device_listeners)
+    if recorder is not None:
+        device_events.insert(0, _device_logger(recorder))
+    if progress is not None:
+        device_events.append(_device_printer(progress))
     loop = MeasurementLoop(
         camera,
         frame,
@@ -362,8 +516,10 @@ def run_test(
         sinks=sinks,
         immediate_sinks=immediate_sinks,
         state=state,
-        block_when_full=world.pace is Pace.FAST,
-        start_speed_mm_min=speed,
+        block_when_full=rig.block_when_full,
+        start_speed_mm_min=speed if rig.commands else None,
+        camera_outage_timeout_s=0.0 if simulate else config.camera.outage_timeout_s,
+        device_listeners=device_events,
     )
     if on_loop is not None:
         on_loop(loop)
@@ -378,7 +534,8 @@ def run_test(
         if bar is not None:
             bar.close()
         camera.close()
-        frame.close()
+        if frame is not None:
+            frame.close()
     for output in every_output:
         try:
             output.end(result)
@@ -394,8 +551,15 @@ def run_test(
             "test_duration_s": state_of_run.get("last_time_s", 0.0),
             "points": int(len(state_of_run.get("points", []))),
             "run_states": [t.target.value for t in loop.state.history],
+            "camera_outages": result.camera_outages,
+            "camera_outage_s": result.camera_outage_s,
+            "controller_outages": result.controller_outages,
+            "frames_without_controller": result.samples_without_controller,
         }
     )
+    statistics = getattr(camera, "statistics", None)
+    if callable(statistics):
+        extra["camera_statistics"] = statistics()
     for output in every_output:
         stats = getattr(output, "stats", None)
         if callable(stats):
@@ -406,6 +570,24 @@ def run_test(
         summary_path.write_text(outcome.to_json() + "\n")
         outcome.summary_path = summary_path
     return outcome
+
+
+def _device_logger(recorder: McapRecorder) -> Callable[[DeviceEvent], None]:
+    def log(event: DeviceEvent) -> None:
+        if event.kind != "waiting":
+            level = "INFO" if event.available else "WARNING"
+            recorder.log(level, f"{event.device} {event.kind}: {event.url}: {event.text}")
+
+    return log
+
+
+def _device_printer(stream: TextIO) -> Callable[[DeviceEvent], None]:
+    def show(event: DeviceEvent) -> None:
+        if event.kind != "waiting":
+            stream.write(f"\n  {event.device} {event.kind}: {event.text}\n")
+            stream.flush()
+
+    return show
 
 
 def _transition_text(transition: Transition) -> str:

@@ -18,7 +18,10 @@ with `[service] start = "auto"`, the first one at once:
 * SIGTERM (or SIGINT) ends the running test as an operator stop, closes its recording, sends
   `STOPPING=1` and exits 0.
 
-With the simulated devices (`sim://` URLs) every test gets a new simulated specimen.
+With the simulated devices (`sim://` URLs) every test gets a new simulated specimen. With
+real devices each test opens the camera and the controller and closes them at its end; a
+device that cannot be opened is logged and reported (`STATUS=`, the `fault` bit), and the
+service waits for the next start command instead of exiting.
 """
 
 from __future__ import annotations
@@ -40,8 +43,9 @@ from appliance.errors import InputError
 from appliance.live_link import LiveLink
 from appliance.outputs import RunOutput
 from appliance.run_state import RunState, Transition
-from appliance.runner import run_test
+from appliance.runner import check_devices, run_test
 from appliance.sd_notify import ServiceNotifier
+from hal.errors import HardwareError
 
 IDLE_TICK_S = 0.1
 
@@ -143,11 +147,10 @@ class Service:
 
     def _start_up(self) -> None:
         self.notifier.status("starting: servers, devices, measurement kernels")
-        for url in (self.config.camera.url, self.config.frame.url):
-            if not url.startswith("sim://"):
-                raise InputError(
-                    f"serve: {url}: only the simulated devices are available in this version"
-                )
+        try:
+            check_devices(self.config, simulate=self.config.camera.url.startswith("sim://"))
+        except HardwareError as exc:
+            raise InputError(f"serve: {exc}") from None
         if self.record_path is None:
             directory = state_directory(self.config)
             try:
@@ -230,12 +233,12 @@ class Service:
         try:
             outcome = run_test(
                 config,
-                simulate=True,
+                simulate=config.camera.url.startswith("sim://"),
                 record_path=record,
                 test_id=self._test_id,
                 **self.link.run_arguments(),
             )
-        except InputError as error:
+        except (InputError, HardwareError) as error:
             self.log(f"{self._test_id}: not started: {error}")
             self.notifier.status(f"last test not started: {error}; {self._idle_status()}")
             self.link.modbus.set_run_state(RunState.FAULT)

@@ -186,20 +186,34 @@ def test_status_bits_and_run_state_code_follow_the_state_and_the_latest_sample(c
     server.set_run_state(RunState.ARMED)
     assert state_words() == (int(StatusBit.CALIBRATING), 1)
     server.set_run_state(RunState.RUNNING)
-    server.publish(make_sample(status=(0, int(TrackStatus.LOST)), reference_updates=2), None)
+    server.publish(
+        make_sample(status=(0, int(TrackStatus.LOST)), reference_updates=2, machine=MACHINE), None
+    )
     every_sample_bit = StatusBit.DATA_VALID | StatusBit.POINT_LOST | StatusBit.REFERENCE_UPDATED
+    assert state_words() == (int(every_sample_bit | StatusBit.TRACKING), 2)
+    server.set_camera_lost(True)
+    lost_camera = StatusBit.CAMERA_LOST | StatusBit.POINT_LOST | StatusBit.REFERENCE_UPDATED
+    assert state_words() == (int(lost_camera | StatusBit.TRACKING), 2)
+    server.set_camera_lost(False)
     assert state_words() == (int(every_sample_bit | StatusBit.TRACKING), 2)
     server.set_run_state(RunState.STOPPING)
     assert state_words() == (int(every_sample_bit), 3)
     server.set_run_state(RunState.IDLE)
     assert state_words() == (int(StatusBit.POINT_LOST | StatusBit.REFERENCE_UPDATED), 0)
     server.set_run_state(RunState.RUNNING)
-    server.publish(make_sample(data_valid=False), None)
+    server.publish(make_sample(data_valid=False, machine=MACHINE), None)
     assert state_words() == (int(StatusBit.TRACKING), 2)
     server.set_run_state(RunState.FAULT)
     assert state_words() == (int(StatusBit.FAULT), 5)
     server.set_run_state(RunState.ABORTED)
     assert state_words() == (0, 4)
+    server.set_run_state(RunState.RUNNING)
+    server.publish(make_sample(machine=None), None)
+    no_controller = StatusBit.DATA_VALID | StatusBit.NO_CONTROLLER_DATA | StatusBit.TRACKING
+    assert state_words() == (int(no_controller), 2)
+    server.set_camera_lost(True)
+    server.set_run_state(RunState.ARMED)
+    assert state_words()[0] & StatusBit.CAMERA_LOST == 0
     server.close()
 
 

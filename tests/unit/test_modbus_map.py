@@ -77,7 +77,7 @@ def test_fixed_block_and_command_block_are_at_the_documented_addresses():
 def test_codes_are_distinct_and_every_run_state_has_one():
     assert set(RUN_STATE_CODES) == set(RunState)
     assert sorted(RUN_STATE_CODES.values()) == list(range(6))
-    assert [int(bit) for bit in StatusBit] == [1, 2, 4, 8, 16, 32]
+    assert [int(bit) for bit in StatusBit] == [1, 2, 4, 8, 16, 32, 64, 128]
 
 
 @pytest.mark.parametrize("word_order", ["big", "little"])

@@ -1,0 +1,273 @@
+"""Installer's checks of the devices: `extensometer camera-check` and `frame-check`.
+
+The first commands run on a new installation, before any test: does the camera deliver
+frames of the expected size and format at the expected rate without loss, and does the
+frame's controller answer with a sensible state, how fast?
+
+`check_camera` opens a camera, configures it (exposure, gain, region, pixel format of the
+configuration, or the given overrides), free-runs it at a frame rate, grabs N frames, and
+reports size, format, the frame rate achieved (host arrival times) and by the device's
+clock, frames lost (gaps in the camera's frame counter), the device timestamps and the
+images' grey levels (to judge exposure: the saturated fraction). `check_frame` opens a
+controller, reads its state N times and reports the last state, the read rate and the read
+latency. Neither starts a test or moves the crosshead.
+
+Both take devices through the backend registry like any test: `sim://` gives the simulator
+(its world built from the configuration), anything else the hardware backend.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any
+
+import numpy as np
+
+from appliance.config import Config, register_map_of
+from appliance.optics import Optics
+from hal.camera.base import Camera, CameraSettings, PixelFormat, Region, TriggerInfo, TriggerMode
+from hal.errors import HardwareTimeout
+from hal.frame.base import FrameState, TensileFrame
+from hal.registry import camera_from_url, frame_from_url
+
+
+def camera_for_check(config: Config, url: str) -> Camera:
+    """The camera named by `url`, constructed as a test would (a simulator with its world)."""
+    if url.startswith("sim://"):
+        return _sim_world(config).camera
+    return camera_from_url(url)
+
+
+def frame_for_check(config: Config, url: str) -> TensileFrame:
+    """The controller named by `url`, with the configuration's register map."""
+    if url.startswith("sim://"):
+        return _sim_world(config).frame
+    return frame_from_url(
+        url,
+        register_map=register_map_of(config, "[frame.registers]"),
+        accepts_commands=False,
+    )
+
+
+def _sim_world(config: Config):
+    from appliance.sim.world import PRESETS, SimWorld
+
+    preset = PRESETS[config.sim.material].optics
+    o = config.optics
+    optics = (
+        Optics(o.focal_length_mm, o.object_distance_mm, o.pixel_size_um)
+        if None not in (o.focal_length_mm, o.object_distance_mm, o.pixel_size_um)
+        else preset
+    )
+    return SimWorld.from_config(config, optics)
+
+
+def _percentiles(values: np.ndarray) -> dict[str, float | None]:
+    if values.size == 0:
+        return {"p50": None, "p99": None, "max": None}
+    p50, p99 = np.percentile(values, [50, 99])
+    return {"p50": float(p50), "p99": float(p99), "max": float(values.max())}
+
+
+def check_camera(
+    camera: Camera,
+    config: Config,
+    *,
+    frames: int = 100,
+    rate_hz: float = 30.0,
+    exposure_us: float | None = None,
+    fetch_timeout_s: float = 2.0,
+) -> dict[str, Any]:
+    """Grab `frames` free-running frames and report what arrived.
+
+    Args:
+        camera: a constructed, not opened, camera (closed again on return).
+        config: the [camera] table gives gain, region and pixel format (and the exposure
+            when `exposure_us` is None; 1000 us when neither is set).
+        frames: frames to grab (>= 2).
+        rate_hz: the internal trigger's frame rate.
+        exposure_us: exposure override, us.
+        fetch_timeout_s: timeout of each fetch.
+
+    Returns:
+        A JSON-ready report: `frames`, `width`, `height`, `pixel_format`, `fps` (host arrival),
+        `device_fps` (device timestamps), `lost` (frame-counter gaps), `timeouts`,
+        `exposure_us` in force, `first_timestamp_ns`, `last_timestamp_ns`,
+        `interval_ms` (p50/p99/max of arrival intervals), grey level `mean_grey`,
+        `saturated_fraction`, and the backend's `statistics` where it has them.
+
+    Raises:
+        HardwareError: the camera cannot be opened or configured, or sends nothing.
+    """
+    if frames < 2:
+        raise ValueError(f"frames must be >= 2, got {frames}")
+    c = config.camera
+    exposure = exposure_us or c.exposure_us or 1000.0
+    region = (
+        Region(c.region_x_px or 0, c.region_y_px or 0, c.region_width_px, c.region_height_px)
+        if c.region_width_px is not None and c.region_height_px is not None
+        else None
+    )
+    settings = CameraSettings(
+        exposure_us=exposure,
+        gain_db=c.gain_db,
+        region=region,
+        pixel_format=PixelFormat(c.pixel_format),
+    )
+    arrivals: list[float] = []
+    ids: list[int] = []
+    stamps: list[int] = []
+    timeouts = 0
+    grey_sum = 0.0
+    saturated = 0
+    pixels = 0
+    last_image = None
+    camera.open()
+    try:
+        in_force = camera.configure(settings)
+        camera.prepare(TriggerInfo(mode=TriggerMode.INTERNAL, rate_hz=rate_hz))
+        camera.arm()
+        try:
+            while len(ids) < frames:
+                try:
+                    frame = camera.fetch(fetch_timeout_s)
+                except HardwareTimeout:
+                    timeouts += 1
+                    if not ids or timeouts >= 3:
+                        raise
+                    continue
+                arrivals.append(time.perf_counter())
+                ids.append(frame.frame_id)
+                stamps.append(frame.timestamp_ns)
+                image = np.asarray(frame.image)
+                grey_sum += float(image.mean())
+                saturated += int(np.count_nonzero(image >= in_force.pixel_format.max_value))
+                pixels += image.size
+                last_image = image
+        finally:
+            camera.disarm()
+        statistics = getattr(camera, "statistics", None)
+        stats = statistics() if callable(statistics) else None
+    finally:
+        camera.close()
+    arrival = np.asarray(arrivals)
+    stamp = np.asarray(stamps, dtype=np.int64)
+    frame_ids = np.asarray(ids, dtype=np.int64)
+    gaps = np.diff(frame_ids) - 1
+    span_s = arrival[-1] - arrival[0]
+    device_span_s = (stamp[-1] - stamp[0]) * 1e-9
+    height, width = last_image.shape[:2]
+    report: dict[str, Any] = {
+        "camera": camera.url,
+        "frames": len(ids),
+        "width": int(width),
+        "height": int(height),
+        "pixel_format": in_force.pixel_format.value,
+        "exposure_us": in_force.exposure_us,
+        "requested_rate_hz": rate_hz,
+        "fps": (len(ids) - 1) / span_s if span_s > 0 else None,
+        "device_fps": (len(ids) - 1) / device_span_s if device_span_s > 0 else None,
+        "lost": int(gaps[gaps > 0].sum()),
+        "timeouts": timeouts,
+        "first_frame_id": int(frame_ids[0]),
+        "last_frame_id": int(frame_ids[-1]),
+        "first_timestamp_ns": int(stamp[0]),
+        "last_timestamp_ns": int(stamp[-1]),
+        "timestamps_increasing": bool(np.all(np.diff(stamp) > 0)),
+        "interval_ms": _percentiles(np.diff(arrival) * 1e3),
+        "mean_grey": grey_sum / len(ids),
+        "saturated_fraction": saturated / pixels,
+    }
+    if stats is not None:
+        report["statistics"] = stats
+    return report
+
+
+def check_frame(frame: TensileFrame, *, reads: int = 50, timeout_s: float = 1.0) -> dict[str, Any]:
+    """Read the controller's state `reads` times, as fast as it answers.
+
+    Args:
+        frame: a constructed, not opened, controller (closed again on return).
+        reads: number of reads (>= 1).
+        timeout_s: timeout of each read.
+
+    Returns:
+        A JSON-ready report: `frame` (URL), `reads`, `state` (the last reading: crosshead_mm,
+        speed_mm_min, force_n, running, encoder_counts), `rate_hz`, `latency_ms`
+        (p50/p99/max) and the backend's `statistics` where it has them.
+
+    Raises:
+        HardwareError: the controller cannot be reached, or answers with an exception.
+    """
+    if reads < 1:
+        raise ValueError(f"reads must be >= 1, got {reads}")
+    latencies: list[float] = []
+    state: FrameState | None = None
+    frame.open(timeout_s)
+    try:
+        started = time.perf_counter()
+        for _ in range(reads):
+            before = time.perf_counter()
+            state = frame.read_state(timeout_s)
+            latencies.append((time.perf_counter() - before) * 1e3)
+        elapsed = time.perf_counter() - started
+        statistics = getattr(frame, "statistics", None)
+        stats = statistics() if callable(statistics) else None
+    finally:
+        frame.close()
+    assert state is not None
+    report: dict[str, Any] = {
+        "frame": frame.url,
+        "reads": reads,
+        "state": {k: v for k, v in dataclasses.asdict(state).items() if k != "timestamp_ns"},
+        "rate_hz": reads / elapsed if elapsed > 0 else None,
+        "latency_ms": _percentiles(np.asarray(latencies)),
+    }
+    if stats is not None:
+        report["statistics"] = stats
+    return report
+
+
+def camera_report_lines(report: dict[str, Any]) -> list[str]:
+    """The camera report as aligned lines for a terminal."""
+    lines = [
+        f"camera             {report['camera']}",
+        f"frames             {report['frames']} ({report['lost']} lost, "
+        f"{report['timeouts']} timeouts)",
+        f"image              {report['width']} x {report['height']} {report['pixel_format']}",
+        f"exposure           {report['exposure_us']:g} us",
+        f"frame rate         {_num(report['fps'])} fps (host), {_num(report['device_fps'])} fps "
+        f"(device clock); {report['requested_rate_hz']:g} requested",
+        f"arrival interval   p50 {_num(report['interval_ms']['p50'])} ms, "
+        f"p99 {_num(report['interval_ms']['p99'])} ms",
+        f"timestamps         {report['first_timestamp_ns']} .. {report['last_timestamp_ns']} ns"
+        f" ({'increasing' if report['timestamps_increasing'] else 'NOT increasing'})",
+        f"grey level         mean {report['mean_grey']:.1f}, "
+        f"saturated {report['saturated_fraction'] * 100:.2f} %",
+    ]
+    for key, value in (report.get("statistics") or {}).items():
+        lines.append(f"  {key:17s}{value}")
+    return lines
+
+
+def frame_report_lines(report: dict[str, Any]) -> list[str]:
+    """The controller report as aligned lines for a terminal."""
+    s = report["state"]
+    lines = [
+        f"frame              {report['frame']}",
+        f"crosshead          {s['crosshead_mm']:.4f} mm",
+        f"speed              {s['speed_mm_min']:.4f} mm/min",
+        f"force              {s['force_n']:.3f} N",
+        f"running            {s['running']}",
+        f"encoder            {s['encoder_counts']}",
+        f"reads              {report['reads']} at {_num(report['rate_hz'])} Hz; latency p50 "
+        f"{_num(report['latency_ms']['p50'])} ms, p99 {_num(report['latency_ms']['p99'])} ms",
+    ]
+    for key, value in (report.get("statistics") or {}).items():
+        lines.append(f"  {key:17s}{value}")
+    return lines
+
+
+def _num(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.2f}"
