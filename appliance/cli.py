@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 import sys
 from collections.abc import Sequence
@@ -781,6 +782,9 @@ def _bench(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the `extensometer` command line; returns the process exit status."""
+    # Device failures are reported by the appliance, once each; pymodbus would log every
+    # failed request of a controller outage on stderr.
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     try:
         args = build_parser().parse_args(argv)
         if args.command == "track":

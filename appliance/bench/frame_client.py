@@ -33,8 +33,6 @@ from __future__ import annotations
 import asyncio
 import os
 import platform
-import socket
-import subprocess
 import sys
 import time
 from collections import Counter
@@ -42,7 +40,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import numpy as np
+from appliance.bench.peer_process import free_loopback_port, percentiles_ms, start_peer, stop_peer
 
 TARGET_RATE_HZ = 100.0
 PACED_RATE_HZ = 100.0
@@ -51,48 +49,6 @@ CONTROLLER_CYCLE_S = 0.005
 """The simulated controller refreshes its registers from the machine this often."""
 PULL_SPEED_MM_MIN = 5.0
 SERVER_START_TIMEOUT_S = 30.0
-
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
-def _start_server(port: int) -> subprocess.Popen:
-    process = subprocess.Popen(
-        [sys.executable, "-m", "appliance.bench.frame_client", "serve", str(port)],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    assert process.stdout is not None
-    line = process.stdout.readline()
-    if line.strip() != "ready":
-        process.kill()
-        process.wait(timeout=10)
-        raise RuntimeError(f"the simulated controller did not start (said {line!r})")
-    return process
-
-
-def _stop_server(process: subprocess.Popen) -> None:
-    try:
-        process.communicate(input="stop\n", timeout=30)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.communicate(timeout=10)
-
-
-def _percentiles_ms(values_s: list[float]) -> dict[str, float | int | None]:
-    values = np.asarray(values_s, dtype=np.float64) * 1e3
-    if values.size == 0:
-        return {"p50": None, "p99": None, "max": None, "n": 0}
-    return {
-        "p50": float(np.percentile(values, 50)),
-        "p99": float(np.percentile(values, 99)),
-        "max": float(values.max()),
-        "n": int(values.size),
-    }
 
 
 def _phase(frame: Any, duration_s: float, rate_hz: float | None) -> dict[str, Any]:
@@ -130,7 +86,7 @@ def _phase(frame: Any, duration_s: float, rate_hz: float | None) -> dict[str, An
         "duration_s": elapsed,
         "reads": len(latencies),
         "rate_hz": len(latencies) / elapsed if elapsed > 0 else 0.0,
-        "latency_ms": _percentiles_ms(latencies),
+        "latency_ms": percentiles_ms(latencies),
         "failures": dict(failures),
     }
     if rate_hz:
@@ -146,8 +102,10 @@ def measure_frame_client(url: str | None = None, duration_s: float = 5.0) -> dic
     load = os.getloadavg()[0]
     server = None
     if url is None:
-        port = _free_port()
-        server = _start_server(port)
+        port = free_loopback_port()
+        server = start_peer(
+            "appliance.bench.frame_client", ["serve", str(port)], "the simulated controller"
+        )
         target = f"modbus-tcp://127.0.0.1:{port}?unit=1"
     else:
         target = url
@@ -162,7 +120,7 @@ def measure_frame_client(url: str | None = None, duration_s: float = 5.0) -> dic
     finally:
         frame.close()
         if server is not None:
-            _stop_server(server)
+            stop_peer(server, "the simulated controller", timeout_s=30.0)
     met = fast["rate_hz"] >= TARGET_RATE_HZ and paced["rate_hz"] >= 0.99 * PACED_RATE_HZ
     return {
         "benchmark": "frame_client",

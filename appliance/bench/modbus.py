@@ -33,7 +33,6 @@ from __future__ import annotations
 import json
 import os
 import platform
-import subprocess
 import sys
 import threading
 import time
@@ -42,6 +41,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from appliance.bench.peer_process import free_loopback_port, percentiles_ms, start_peer, stop_peer
 
 TARGET_P99_MS = 2.0
 FRAME_RATE_HZ = 50.0
@@ -143,7 +144,7 @@ def _measure_once(frames: int, *, with_client: bool) -> dict[str, Any]:
     from hal.camera.sim import SimCamera
     from hal.clock import Pace, SimClock
 
-    port = _free_port()
+    port = free_loopback_port()
     server = StrainRegisterServer(ModbusConfig(tcp=f"127.0.0.1:{port}"), lambda *_: False)
     server.start(timeout_s=30.0)
     delivered: dict[int, float] = {}
@@ -192,7 +193,11 @@ def _measure_once(frames: int, *, with_client: bool) -> dict[str, Any]:
         TriggerInfo(mode=TriggerMode.INTERNAL, rate_hz=FRAME_RATE_HZ, exposure_us=EXPOSURE_US)
     )
     state = RunStateMachine(on_transition=lambda change: server.set_run_state(change.target))
-    poller = _start_poller(port) if with_client else None
+    poller = (
+        start_peer("appliance.bench.modbus", ["poll", str(port)], "the polling client")
+        if with_client
+        else None
+    )
     try:
         loop = MeasurementLoop(
             _StampedCamera(camera, delivered),
@@ -204,7 +209,7 @@ def _measure_once(frames: int, *, with_client: bool) -> dict[str, Any]:
         )
         result = loop.run(StopCriteria(until_break=False, max_frames=frames))
     finally:
-        client = _stop_poller(poller) if poller is not None else None
+        client = json.loads(stop_peer(poller, "the polling client")) if poller is not None else None
         server.close()
         camera.close()
     return {
@@ -215,52 +220,6 @@ def _measure_once(frames: int, *, with_client: bool) -> dict[str, Any]:
         "publish": publish_stamps,
         "client": client,
         "strain_errors": strain_errors,
-    }
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
-def _start_poller(port: int) -> subprocess.Popen:
-    process = subprocess.Popen(
-        [sys.executable, "-m", "appliance.bench.modbus", "poll", str(port)],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    assert process.stdout is not None
-    line = process.stdout.readline()
-    if line.strip() != "ready":
-        process.kill()
-        process.wait(timeout=10)
-        raise RuntimeError(f"the polling client did not start (said {line!r})")
-    return process
-
-
-def _stop_poller(process: subprocess.Popen) -> dict[str, Any]:
-    try:
-        output, _ = process.communicate(input="stop\n", timeout=60)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.communicate(timeout=10)
-        raise RuntimeError("the polling client did not stop") from None
-    return json.loads(output)
-
-
-def _percentiles_ms(values_s: list[float] | np.ndarray) -> dict[str, float | None]:
-    values = np.asarray(values_s, dtype=np.float64) * 1e3
-    if values.size == 0:
-        return {"p50": None, "p99": None, "max": None, "n": 0}
-    return {
-        "p50": float(np.percentile(values, 50)),
-        "p99": float(np.percentile(values, 99)),
-        "max": float(values.max()),
-        "n": int(values.size),
     }
 
 
@@ -285,15 +244,15 @@ def _figures(run: Mapping[str, Any]) -> dict[str, Any]:
         "frames": len(total),
         "frames_dropped": run["result"].frames_dropped,
         "exit_status": run["result"].exit_status,
-        "delivery_to_register_ms": _percentiles_ms(total),
+        "delivery_to_register_ms": percentiles_ms(total),
         "stages_ms": {
-            "queue_to_tracking_thread": _percentiles_ms(queue),
-            "tracker_track": _percentiles_ms(tracking),
-            "gauges_read": _percentiles_ms(gauges),
-            "rest_of_measure": _percentiles_ms(rest),
-            "publish": _percentiles_ms(publish),
+            "queue_to_tracking_thread": percentiles_ms(queue),
+            "tracker_track": percentiles_ms(tracking),
+            "gauges_read": percentiles_ms(gauges),
+            "rest_of_measure": percentiles_ms(rest),
+            "publish": percentiles_ms(publish),
         },
-        "loop_latency_ms": _percentiles_ms(loop_latency),
+        "loop_latency_ms": percentiles_ms(loop_latency),
         "max_abs_strain_error": float(np.max(np.abs(run["strain_errors"]))),
     }
     client = run["client"]
@@ -302,9 +261,9 @@ def _figures(run: Mapping[str, Any]) -> dict[str, Any]:
         figures["client"] = {
             "poll_interval_ms": POLL_INTERVAL_S * 1e3,
             "requests": len(client["rtt_s"]),
-            "round_trip_ms": _percentiles_ms(client["rtt_s"]),
-            "delivery_to_seen_ms": _percentiles_ms([t - delivered[f] for t, f in seen]),
-            "register_to_seen_ms": _percentiles_ms([t - updated_at[f] for t, f in seen]),
+            "round_trip_ms": percentiles_ms(client["rtt_s"]),
+            "delivery_to_seen_ms": percentiles_ms([t - delivered[f] for t, f in seen]),
+            "register_to_seen_ms": percentiles_ms([t - updated_at[f] for t, f in seen]),
             "frames_seen": len(seen),
         }
     return figures
