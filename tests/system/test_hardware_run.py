@@ -1,0 +1,174 @@
+"""Whole tests on real protocol peers: a GigE Vision camera filming a stretching specimen and a
+Modbus TCP frame controller, measured by `extensometer run` and by `run_test` itself.
+
+The camera is `tests.system.gv_specimen_camera` (an Aravis GvFakeCamera on 127.0.0.2 whose
+images are a rendered speckle specimen with a truth log keyed by device timestamp); the
+controller is a pymodbus server on 127.0.0.1 serving a small simulated machine through the
+generic register map. Nothing is simulated inside the appliance: it opens
+`aravis://127.0.0.2` and `modbus-tcp://127.0.0.1:PORT` through its registry like any
+installation would.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from appliance.config import parse_config
+from appliance.loop import DeviceEvent
+from appliance.runner import run_test
+from tests.system.aravis_peers import needs_gige, specimen_camera
+from tests.system.frame_controller_peers import ControllerServer, SimulatedController
+from tests.system.modbus_peers import free_tcp_port
+
+pytestmark = needs_gige
+
+OPTICS = "[optics]\nfocal_length_mm = 25.0\nobject_distance_mm = 250.0\npixel_size_um = 5.0\n"
+
+
+def _config_text(camera_url: str, frame_url: str, **tables: str) -> str:
+    body = {
+        "camera": f'url = "{camera_url}"\nexposure_us = 1000\nframe_rate_hz = 20\n'
+        "outage_timeout_s = 30",
+        "frame": f'url = "{frame_url}"\naccepts_commands = true',
+        "gauge": "length_mm = 10.0\npoints_per_mark = 3",
+        "run": "speed_mm_min = 30.0\nuntil_break = false",
+        "tracking": "subset_px = 31\nmin_subset_px = 11",
+        **tables,
+    }
+    return OPTICS + "".join(f"[{name}]\n{text}\n" for name, text in body.items())
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_extensometer_run_measures_a_gige_specimen_against_its_truth(tmp_path):
+    controller = SimulatedController()
+    port = free_tcp_port()
+    with (
+        specimen_camera(
+            tmp_path / "truth.jsonl", strain_rate_per_s=0.05, max_strain=0.08, hold_s=1.0
+        ) as camera,
+        ControllerServer(controller) as server,
+    ):
+        server.serve_tcp(port)
+        config = tmp_path / "run.toml"
+        config.write_text(
+            _config_text(
+                camera.url,
+                f"modbus-tcp://127.0.0.1:{port}",
+                run="speed_mm_min = 30.0\nuntil_break = false\nuntil_strain = 0.04",
+            )
+        )
+        out = tmp_path / "out"
+        done = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "appliance.cli",
+                "run",
+                "--config",
+                str(config),
+                "--out",
+                str(out),
+                "--record",
+                str(tmp_path / "test.mcap"),
+                "--json",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=180,
+        )
+        assert done.returncode == 0, done.stderr
+        truth = camera.truth()
+    summary = json.loads(done.stdout)
+    assert summary["exit_status"] == "completed" and "strain" in summary["reason"]
+    assert summary["camera_outages"] == 0 and summary["frames_without_controller"] == 0
+    statistics = summary["camera_statistics"]
+    assert statistics["frames_delivered"] >= summary["frames_processed"] + 1
+    assert statistics["frames_lost"] == 0 == summary["frames_dropped"]
+    rows = _rows(out / "strain.csv")
+    assert len(rows) == summary["frames_processed"] >= 15
+    errors = []
+    for row in rows:
+        record = truth.record(timestamp_ns=int(row["timestamp_ns"]))
+        assert row["data_valid"] == "1"
+        errors.append(float(row["engineering_strain"]) - record.strain)
+        assert float(row["force_n"]) > 0 and math.isfinite(float(row["crosshead_mm"]))
+    errors = np.abs(errors)
+    assert errors.max() < 3e-4, f"worst strain error {errors.max():.2e}"
+    assert float(rows[-1]["engineering_strain"]) >= 0.04
+    names = [name for name, _ in controller.commands()]
+    assert names[:2] == ["speed_setpoint_mm_min", "start"] and names[-1] == "stop"
+    assert controller.commands()[0][1] == pytest.approx(30.0)
+    replay = subprocess.run(
+        [sys.executable, "-m", "appliance.cli", "replay", str(tmp_path / "test.mcap"), "--json"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert replay.returncode == 0, replay.stderr
+    assert json.loads(replay.stdout)["max_abs_diff_to_recorded"] == 0.0
+
+
+def test_a_camera_that_goes_away_mid_test_is_waited_for_and_the_test_goes_on(tmp_path):
+    config = parse_config(
+        _config_text("aravis://127.0.0.2", "", frame='url = ""\naccepts_commands = false')
+    )
+    events: list[DeviceEvent] = []
+    samples = []
+    loop_box = []
+    outcome_box = []
+
+    def run() -> None:
+        outcome_box.append(
+            run_test(
+                config,
+                simulate=False,
+                immediate_sinks=[samples.append],
+                device_listeners=[events.append],
+                on_loop=loop_box.append,
+            )
+        )
+
+    def wait(condition, what: str, timeout_s: float = 60.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not condition():
+            assert runner.is_alive() or outcome_box, "the run ended early"
+            assert time.monotonic() < deadline, f"timed out waiting for {what}"
+            time.sleep(0.05)
+
+    runner = threading.Thread(target=run, daemon=True)
+    with specimen_camera(tmp_path / "before.jsonl", strain_rate_per_s=0.0, max_strain=0.0):
+        runner.start()
+        wait(lambda: len(samples) >= 10, "samples before the outage")
+    wait(lambda: any(e.kind == "lost" for e in events), "the camera to be reported lost")
+    measured_before = len(samples)
+    with specimen_camera(tmp_path / "after.jsonl", strain_rate_per_s=0.0, max_strain=0.0):
+        wait(lambda: any(e.kind == "restored" for e in events), "the camera to come back")
+        wait(lambda: len(samples) >= measured_before + 10, "samples after the outage")
+        loop_box[0].request_stop("test over")
+        runner.join(timeout=60)
+    assert not runner.is_alive()
+    outcome = outcome_box[0]
+    summary = outcome.as_dict()
+    assert summary["exit_status"] == "completed", summary["reason"]
+    assert summary["camera_outages"] == 1 and summary["camera_outage_s"] > 0
+    kinds = [e.kind for e in events if e.device == "camera"]
+    assert kinds[0] == "lost" and kinds[-1] == "restored"
+    after = samples[measured_before:]
+    assert all(s.data_valid for s in after[-5:])
+    assert max(abs(s.reading.engineering_strain) for s in after[-5:]) < 2e-4
+    stamps = [s.timestamp_ns for s in samples]
+    assert all(b > a for a, b in zip(stamps, stamps[1:], strict=False))
