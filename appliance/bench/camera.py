@@ -44,6 +44,8 @@ from typing import Any
 
 import numpy as np
 
+from appliance.bench.peer_process import percentiles_ms
+
 EXPOSURES_US = (100.0, 1000.0, 3000.0)
 WIDTH = HEIGHT = 512
 TARGET_FPS = 150.0
@@ -53,7 +55,8 @@ FAKE_ADDRESS = "127.0.0.1"
 _GVCP_PORT = 3956
 
 
-def _gvcp_port_bound(address: str) -> bool:
+def gvcp_port_bound(address: str) -> bool:
+    """True when something holds UDP ADDRESS:3956 (a camera serving GVCP); sends nothing."""
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
         try:
             probe.bind((address, _GVCP_PORT))
@@ -70,7 +73,7 @@ def _fake_camera(timeout_s: float = 10.0) -> Iterator[str]:
     program = shutil.which("arv-fake-gv-camera-0.8")
     if program is None:
         raise RuntimeError("arv-fake-gv-camera-0.8 is not installed (apt-get install aravis-tools)")
-    if _gvcp_port_bound(FAKE_ADDRESS):
+    if gvcp_port_bound(FAKE_ADDRESS):
         raise RuntimeError(f"something already serves GVCP on {FAKE_ADDRESS}:{_GVCP_PORT}")
     process = subprocess.Popen(
         [program, "-i", FAKE_ADDRESS, "-s", "GV01"],
@@ -79,7 +82,7 @@ def _fake_camera(timeout_s: float = 10.0) -> Iterator[str]:
     )
     try:
         deadline = time.monotonic() + timeout_s
-        while not _gvcp_port_bound(FAKE_ADDRESS):
+        while not gvcp_port_bound(FAKE_ADDRESS):
             if process.poll() is not None or time.monotonic() > deadline:
                 raise RuntimeError("arv-fake-gv-camera-0.8 did not start")
             time.sleep(0.02)
@@ -91,17 +94,6 @@ def _fake_camera(timeout_s: float = 10.0) -> Iterator[str]:
         except subprocess.TimeoutExpired:
             process.kill()
             process.wait(timeout=10)
-
-
-def _percentiles_ms(values_ms: Sequence[float] | np.ndarray) -> dict[str, float | None]:
-    values = np.asarray(values_ms, dtype=np.float64)
-    if values.size == 0:
-        return {"p50": None, "p99": None, "max": None}
-    return {
-        "p50": float(np.percentile(values, 50)),
-        "p99": float(np.percentile(values, 99)),
-        "max": float(values.max()),
-    }
 
 
 def _difference(after: Mapping[str, Any], before: Mapping[str, Any], key: str) -> int:
@@ -152,9 +144,9 @@ def _measure_run(camera: Any, exposure_us: float, frames: int) -> dict[str, Any]
         "missing_packets": _difference(after, before, "missing_packets"),
         "resend_requests": _difference(after, before, "resend_requests"),
         "resent_packets": _difference(after, before, "resent_packets"),
-        "interval_ms": _percentiles_ms(np.diff(returned_s) * 1e3),
-        "device_interval_ms": _percentiles_ms(np.diff(device) * 1e-6),
-        "transport_ms": _percentiles_ms((np.asarray(system_ns, np.int64) - device) * 1e-6),
+        "interval_ms": percentiles_ms(np.diff(returned_s)),
+        "device_interval_ms": percentiles_ms(np.diff(device) * 1e-9),
+        "transport_ms": percentiles_ms((np.asarray(system_ns, np.int64) - device) * 1e-9),
     }
 
 

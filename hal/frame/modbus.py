@@ -211,11 +211,23 @@ def parse_url(url: str) -> TcpLink | RtuLink:
     )
 
 
-class _DeadlineTcpClient(ModbusTcpClient):
-    """pymodbus' TCP client whose waits end at `deadline` and whose connect keeps its error."""
+class _DeadlineReceive:
+    """Gives each wait for reply bytes only what is left until `deadline` (pymodbus' sync
+    clients wait `comm_params.timeout_connect` per receive)."""
 
     deadline: float = math.inf
     connect_error: BaseException | None = None
+
+    def recv(self, size: int | None) -> bytes:
+        remaining = self.deadline - time.monotonic()
+        if remaining <= 0:
+            return b""
+        self.comm_params.timeout_connect = remaining
+        return super().recv(size)
+
+
+class _DeadlineTcpClient(_DeadlineReceive, ModbusTcpClient):
+    """pymodbus' TCP client whose waits end at `deadline` and whose connect keeps its error."""
 
     def connect(self) -> bool:
         if self.socket:
@@ -234,19 +246,9 @@ class _DeadlineTcpClient(ModbusTcpClient):
             self.close()
         return self.socket is not None
 
-    def recv(self, size: int | None) -> bytes:
-        remaining = self.deadline - time.monotonic()
-        if remaining <= 0:
-            return b""
-        self.comm_params.timeout_connect = remaining
-        return super().recv(size)
 
-
-class _DeadlineSerialClient(ModbusSerialClient):
+class _DeadlineSerialClient(_DeadlineReceive, ModbusSerialClient):
     """pymodbus' serial client whose waits end at `deadline` and whose connect keeps its error."""
-
-    deadline: float = math.inf
-    connect_error: BaseException | None = None
 
     def connect(self) -> bool:
         if self.socket:
@@ -268,13 +270,6 @@ class _DeadlineSerialClient(ModbusSerialClient):
             self.connect_error = exc
             self.close()
         return self.socket is not None
-
-    def recv(self, size: int | None) -> bytes:
-        remaining = self.deadline - time.monotonic()
-        if remaining <= 0:
-            return b""
-        self.comm_params.timeout_connect = remaining
-        return super().recv(size)
 
 
 _Client = _DeadlineTcpClient | _DeadlineSerialClient

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import errno
 import json
 import os
 import select
@@ -36,6 +35,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+
+from appliance.bench.camera import gvcp_port_bound
 
 FAKE_GV_CAMERA = shutil.which("arv-fake-gv-camera-0.8")
 IP = shutil.which("ip")
@@ -87,18 +88,6 @@ def ensure_loopback_address(address: str) -> None:
     subprocess.run(
         [IP, "addr", "add", f"{address}/8", "dev", "lo"], capture_output=True, text=True, check=True
     )
-
-
-def gvcp_port_bound(address: str) -> bool:
-    """True when something holds UDP ADDRESS:3956 (a camera serving GVCP); sends nothing."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        try:
-            probe.bind((address, GVCP_PORT))
-        except OSError as exc:
-            if exc.errno == errno.EADDRINUSE:
-                return True
-            raise
-    return False
 
 
 def _wait_for(condition: Any, timeout_s: float, what: str, process: subprocess.Popen) -> None:
