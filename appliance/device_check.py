@@ -247,7 +247,7 @@ def camera_report_lines(report: dict[str, Any]) -> list[str]:
         f"saturated {report['saturated_fraction'] * 100:.2f} %",
     ]
     for key, value in (report.get("statistics") or {}).items():
-        lines.append(f"  {key:17s}{value}")
+        lines.append(f"  {key:24s} {value}")
     return lines
 
 
@@ -265,7 +265,7 @@ def frame_report_lines(report: dict[str, Any]) -> list[str]:
         f"{_num(report['latency_ms']['p50'])} ms, p99 {_num(report['latency_ms']['p99'])} ms",
     ]
     for key, value in (report.get("statistics") or {}).items():
-        lines.append(f"  {key:17s}{value}")
+        lines.append(f"  {key:24s} {value}")
     return lines
 
 
