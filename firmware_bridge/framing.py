@@ -1,0 +1,166 @@
+"""Frames of the trigger microcontroller's protocol: encoding, and a decoder that resyncs.
+
+The wire format is in `firmware_bridge.messages`. `encode` builds one frame from a message
+name, a sequence number and the payload's field values; `FrameDecoder.feed` takes bytes as
+they arrive (any split, any garbage between frames) and returns the frames completed so far.
+
+The decoder never loses a valid frame that follows garbage: on a start byte it waits for the
+length, rejects a length outside 2 ... MAX_LEN, and on a CRC mismatch drops that start byte
+only and searches again from the byte after it (a valid frame hidden inside a bad one is
+found). A start byte and a plausible length from noise make the decoder wait for the bytes
+of a frame that never comes; `give_up_partial`, called when the line has gone quiet, drops
+it and looks at what was held. A frame with a good CRC whose id is unknown or whose payload does not fit its
+message is returned as a `DecodedFrame` with `problem` set, so the receiver can answer it
+(the firmware replies ERROR) instead of dropping it silently.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, field
+from typing import Any
+
+from firmware_bridge.messages import BY_ID, BY_NAME, MAX_LEN, START_BYTE, Message, crc16
+
+
+class FramingError(ValueError):
+    """A frame that cannot be built (unknown message, wrong fields, value out of range)."""
+
+
+def encode(name: str, seq: int, **values: Any) -> bytes:
+    """One frame of message `name` with sequence number `seq` (0 ... 255).
+
+    Raises:
+        FramingError: unknown message, missing or extra fields, or a value its type cannot
+            hold.
+    """
+    message = BY_NAME.get(name)
+    if message is None:
+        raise FramingError(f"unknown message {name!r}")
+    names = [n for n, _ in message.fields]
+    if sorted(values) != sorted(names):
+        raise FramingError(f"{name}: fields are {names}, got {sorted(values)}")
+    if not 0 <= seq <= 255:
+        raise FramingError(f"{name}: sequence number {seq} outside 0 ... 255")
+    try:
+        payload = struct.pack(message.struct_format, *(values[n] for n in names))
+    except struct.error as exc:
+        raise FramingError(f"{name}: {exc}") from None
+    body = bytes([len(payload) + 2, seq, message.id]) + payload
+    crc = crc16(body)
+    return bytes([START_BYTE]) + body + bytes([crc & 0xFF, crc >> 8])
+
+
+@dataclass(frozen=True)
+class DecodedFrame:
+    """A frame with a good CRC.
+
+    Attributes:
+        seq: its sequence number.
+        message_id: its message id.
+        message: the message type (None when the id is unknown).
+        values: the payload's fields by name (empty when `problem` is set).
+        problem: why the frame cannot be used ("unknown message", "bad payload"), or "".
+        raw: the frame's bytes.
+    """
+
+    seq: int
+    message_id: int
+    message: Message | None
+    values: dict[str, Any]
+    problem: str
+    raw: bytes
+
+    @property
+    def name(self) -> str:
+        """The message's name, or UNKNOWN_0x.. ."""
+        return self.message.name if self.message else f"UNKNOWN_{self.message_id:#04x}"
+
+
+@dataclass
+class DecoderStatistics:
+    """What a decoder has seen: frames, bytes skipped while searching, CRC and length errors."""
+
+    frames: int = 0
+    skipped_bytes: int = 0
+    crc_errors: int = 0
+    length_errors: int = 0
+
+
+@dataclass
+class FrameDecoder:
+    """Incremental decoder of a byte stream into frames."""
+
+    statistics: DecoderStatistics = field(default_factory=DecoderStatistics)
+    _buffer: bytearray = field(default_factory=bytearray)
+
+    def feed(self, data: bytes) -> list[DecodedFrame]:
+        """Add received bytes; the frames they complete, in order."""
+        buffer = self._buffer
+        buffer.extend(data)
+        frames: list[DecodedFrame] = []
+        stats = self.statistics
+        while True:
+            start = buffer.find(START_BYTE)
+            if start < 0:
+                stats.skipped_bytes += len(buffer)
+                buffer.clear()
+                return frames
+            if start:
+                stats.skipped_bytes += start
+                del buffer[:start]
+            if len(buffer) < 2:
+                return frames
+            length = buffer[1]
+            if not 2 <= length <= MAX_LEN:
+                stats.length_errors += 1
+                stats.skipped_bytes += 1
+                del buffer[:1]
+                continue
+            total = length + 4
+            if len(buffer) < total:
+                return frames
+            body = bytes(buffer[1 : 2 + length])
+            received = buffer[2 + length] | (buffer[3 + length] << 8)
+            if crc16(body) != received:
+                stats.crc_errors += 1
+                stats.skipped_bytes += 1
+                del buffer[:1]
+                continue
+            raw = bytes(buffer[:total])
+            del buffer[:total]
+            stats.frames += 1
+            frames.append(_decoded(body, raw))
+
+    def pending(self) -> int:
+        """Bytes held waiting for the rest of a frame."""
+        return len(self._buffer)
+
+    def give_up_partial(self) -> list[DecodedFrame]:
+        """Treat the start byte of a frame that is waiting for its rest as garbage (call it
+        when the line has been quiet longer than a frame takes): a start byte and length
+        from noise would otherwise hold back a valid frame behind them until more bytes
+        arrive. Returns the frames found in what was held."""
+        if not self._buffer:
+            return []
+        held = bytes(self._buffer[1:])
+        self._buffer.clear()
+        self.statistics.skipped_bytes += 1
+        return self.feed(held)
+
+
+def _decoded(body: bytes, raw: bytes) -> DecodedFrame:
+    seq, message_id, payload = body[1], body[2], body[3:]
+    message = BY_ID.get(message_id)
+    if message is None:
+        return DecodedFrame(seq, message_id, None, {}, "unknown message", raw)
+    if len(payload) != message.payload_size:
+        return DecodedFrame(seq, message_id, message, {}, "bad payload", raw)
+    values = dict(
+        zip(
+            (n for n, _ in message.fields),
+            struct.unpack(message.struct_format, payload),
+            strict=True,
+        )
+    )
+    return DecodedFrame(seq, message_id, message, values, "", raw)
