@@ -9,9 +9,9 @@ length, rejects a length outside 2 ... MAX_LEN, and on a CRC mismatch drops that
 only and searches again from the byte after it (a valid frame hidden inside a bad one is
 found). A start byte and a plausible length from noise make the decoder wait for the bytes
 of a frame that never comes; `give_up_partial`, called when the line has gone quiet, drops
-it and looks at what was held. A frame with a good CRC whose id is unknown or whose payload does not fit its
-message is returned as a `DecodedFrame` with `problem` set, so the receiver can answer it
-(the firmware replies ERROR) instead of dropping it silently.
+it and looks at what was held. A frame with a good CRC whose id is unknown or whose payload
+does not fit its message is returned as a `DecodedFrame` with `problem` set, so the receiver
+can answer it (the firmware replies ERROR) instead of dropping it silently.
 """
 
 from __future__ import annotations
