@@ -85,6 +85,23 @@ class FrameConfig:
 
 
 @dataclass(frozen=True)
+class TriggerConfig:
+    """[trigger]: what starts each exposure.
+
+    `source`: `internal` = the camera free-runs at the planned frame rate; `period` = the
+    trigger microcontroller fires the camera at the planned period in its clock ticks;
+    `encoder` = it fires every N counts of the crosshead encoder, N the planned
+    frame-to-frame travel (`appliance.trigger_plan`). The simulated test has a simulated
+    microcontroller on the simulated machine's encoder (`encoder_counts_per_mm`).
+    `pulse_width_us` is the trigger pulse's width.
+    """
+
+    source: str = field(default="internal", metadata={"choices": ("internal", "period", "encoder")})
+    pulse_width_us: float = field(default=10.0, metadata=_range(1.0, 100000.0))
+    encoder_counts_per_mm: float = field(default=1000.0, metadata=_range(1.0, 1e7))
+
+
+@dataclass(frozen=True)
 class OpticsConfig:
     """[optics]: lens and sensor, for calibration and exposure planning.
 
@@ -248,6 +265,7 @@ class Config:
 
     camera: CameraConfig = field(default_factory=CameraConfig)
     frame: FrameConfig = field(default_factory=FrameConfig)
+    trigger: TriggerConfig = field(default_factory=TriggerConfig)
     optics: OpticsConfig = field(default_factory=OpticsConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     gauge: GaugeConfig = field(default_factory=GaugeConfig)

@@ -44,6 +44,7 @@ from appliance.run_state import RunStateMachine, Transition
 from appliance.strain_file import StrainCsvWriter
 from appliance.summary import RunSummary, SampleRecord
 from appliance.tracking import MarkTracker, TrackerSettings
+from appliance.trigger_plan import TriggerPlan, plan_triggers
 from hal.camera.base import (
     Camera,
     CameraSettings,
@@ -250,6 +251,11 @@ def _hardware_rig(config: Config) -> _Rig:
         if url.startswith("sim://"):
             raise InputError(f"{key}: {url} is simulated: run with --sim, or name a real device")
     camera = camera_from_url(config.camera.url)
+    if config.trigger.source != "internal":
+        raise InputError(
+            f"[trigger] source: {config.trigger.source!r} needs the trigger microcontroller, "
+            "which this version drives in the simulated test only"
+        )
     optics = _optics(config, None)
     if config.gauge.length_mm is None:
         raise InputError("[gauge] length_mm: required with a real specimen")
@@ -282,6 +288,36 @@ def _hardware_rig(config: Config) -> _Rig:
         commands=frame is not None and config.frame.accepts_commands,
         block_when_full=False,
     )
+
+
+def _prepare_triggers(
+    config: Config, rig: _Rig, plan: ExposurePlan, camera: Camera
+) -> TriggerPlan | None:
+    """Prepare the camera's triggering: free-running at the planned rate, or external edges
+    from the trigger microcontroller, configured and armed here; the trigger plan or None."""
+    source = config.trigger.source
+    if source == "internal":
+        camera.prepare(TriggerInfo(mode=TriggerMode.INTERNAL, rate_hz=1.0 / plan.frame_period_s))
+        return None
+    if rig.world is None:
+        raise InputError(
+            f"[trigger] source: {source!r} needs the trigger microcontroller, which this "
+            "version drives in the simulated test only"
+        )
+    controller = rig.world.trigger
+    try:
+        triggers = plan_triggers(
+            plan,
+            tick_hz=controller.tick_hz,
+            counts_per_mm=config.trigger.encoder_counts_per_mm if source == "encoder" else None,
+            pulse_width_us=config.trigger.pulse_width_us,
+        )
+    except ValueError as exc:
+        raise InputError(f"[trigger] pulse_width_us: {exc}") from None
+    controller.configure(triggers)
+    camera.prepare(TriggerInfo(mode=TriggerMode.EXTERNAL))
+    controller.arm(rig.world.clock.now_s())
+    return triggers
 
 
 def check_devices(config: Config, *, simulate: bool) -> None:
@@ -401,7 +437,7 @@ def run_test(
                 pixel_format=PixelFormat(config.camera.pixel_format),
             )
         )
-        camera.prepare(TriggerInfo(mode=TriggerMode.INTERNAL, rate_hz=1.0 / plan.frame_period_s))
+        triggers = _prepare_triggers(config, rig, plan, camera)
     except BaseException:
         if recorder is not None:
             recorder.close()
@@ -419,7 +455,12 @@ def run_test(
         "frame_rate_hz": 1.0 / plan.frame_period_s,
         "blur_px_at_crosshead_speed": plan.blur_px,
         "blur_budget_met": bool(plan.budget_met),
+        "trigger_source": config.trigger.source,
     }
+    if triggers is not None:
+        extra["trigger_period_ticks"] = triggers.period_ticks
+        extra["trigger_encoder_divisor"] = triggers.encoder_divisor
+        extra["frame_period_s"] = triggers.frame_period_s
     state_of_run: dict[str, Any] = {}
 
     def setup(reference):

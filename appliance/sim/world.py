@@ -39,6 +39,7 @@ from appliance.sim.machine import SimMachine
 from appliance.sim.materials import ElasticPlastic, MooneyRivlin
 from appliance.sim.scene import SpecimenScene, SpeckleCoat
 from appliance.sim.specimen import Specimen
+from appliance.sim.trigger import SimTriggerController
 from hal.camera.base import Frame
 from hal.clock import Pace, SimClock
 from hal.registry import camera_from_url, frame_from_url
@@ -104,6 +105,10 @@ class SimWorld:
         read_noise, electrons_per_grey: camera noise (see `hal.camera.sim.SimCamera`).
         camera_hang_after_s: simulation time from which the camera hangs (fault injection,
             see `hal.camera.sim.SimCamera`); None = never.
+        encoder_counts_per_mm: the crosshead encoder's resolution.
+
+    The camera's trigger input is wired to `trigger`, the simulated trigger microcontroller
+    (`appliance.sim.trigger`), which the test configures and arms for EXTERNAL triggering.
     """
 
     def __init__(
@@ -119,6 +124,7 @@ class SimWorld:
         read_noise: float = 0.5,
         electrons_per_grey: float = 40.0,
         camera_hang_after_s: float | None = None,
+        encoder_counts_per_mm: float = 1000.0,
     ) -> None:
         self.preset = preset
         self.specimen = preset.specimen()
@@ -128,7 +134,10 @@ class SimWorld:
         self.pace = pace
         self.clock = SimClock(pace)
         self.bar = BarModel(self.specimen, self.material)
-        self.machine = SimMachine(self.bar, Crosshead())
+        self.machine = SimMachine(
+            self.bar, Crosshead(), encoder_counts_per_mm=encoder_counts_per_mm
+        )
+        self.trigger = SimTriggerController(self.machine)
         width, height = sensor_size or preset.sensor_size
         scale = self.optics.scale_mm_per_px
         half_gauge = 0.5 * self.specimen.gauge_length_mm
@@ -161,6 +170,7 @@ class SimWorld:
             read_noise=read_noise,
             electrons_per_grey=electrons_per_grey,
             hang_after_s=camera_hang_after_s,
+            trigger_line=self.trigger,
         )
         self.frame = frame_from_url("sim://frame", machine=self.machine, clock=self.clock)
 
@@ -182,6 +192,7 @@ class SimWorld:
             read_noise=config.sim.read_noise_grey,
             electrons_per_grey=config.sim.electrons_per_grey,
             camera_hang_after_s=config.sim.camera_hang_after_s or None,
+            encoder_counts_per_mm=config.trigger.encoder_counts_per_mm,
         )
 
     @property

@@ -4,7 +4,8 @@ URL: `sim://camera` (the path is free text). Constructed by the registry as
 `SimCamera(url, scene=..., clock=..., seed=..., read_noise=..., full_well_ratio=...)`.
 
 What it models: exposure timing for INTERNAL (fixed rate), SOFTWARE and EXTERNAL triggers
-(an external edge is delivered by `external_edge(t_s)`, as a trigger microcontroller would);
+(an external edge is delivered by `external_edge(t_s)`, or asked of the `trigger_line` the
+camera is wired to, as a trigger microcontroller's output would drive it);
 exposure integration (the scene renders over [start, start + exposure]); gain as a factor on
 the signal; Gaussian read noise and Poisson shot noise; quantisation to Mono8 or Mono12/16
 with clipping; the sensor region; frame ids and device timestamps (start of exposure, ns, from
@@ -29,8 +30,9 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import math
 import threading
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -47,6 +49,15 @@ from hal.clock import Pace, SimClock
 from hal.errors import HardwareConfigError, HardwareConnectError, HardwareTimeout
 
 
+@runtime_checkable
+class TriggerLine(Protocol):
+    """The simulated trigger input: when the next rising edge comes (a simulated trigger
+    microcontroller answers from its configuration and the machine's motion)."""
+
+    def next_edge_s(self, after_s: float) -> float | None:
+        """Simulation time of the first edge after `after_s`, s; None = no more edges."""
+
+
 class SimCamera:
     """A camera that renders its `Scene` at every trigger.
 
@@ -60,6 +71,8 @@ class SimCamera:
             no shot noise.
         hang_after_s: simulation time from which the camera hangs (see the module
             docstring); None = never.
+        trigger_line: what drives the trigger input in EXTERNAL mode besides
+            `external_edge` calls; None = only those.
     """
 
     def __init__(
@@ -72,6 +85,7 @@ class SimCamera:
         read_noise: float = 0.5,
         electrons_per_grey: float = 40.0,
         hang_after_s: float | None = None,
+        trigger_line: TriggerLine | None = None,
         **_: Any,
     ) -> None:
         self.url = url
@@ -90,6 +104,8 @@ class SimCamera:
         self._frame_id = 0
         self._hang_after_s = hang_after_s
         self._released = threading.Event()
+        self._trigger_line = trigger_line
+        self._last_edge_s = -math.inf
 
     @property
     def sensor_size(self) -> tuple[int, int]:
@@ -131,6 +147,7 @@ class SimCamera:
         self._pending.clear()
         self._delivered = 0
         self._next_internal_s = self._clock.now_s()
+        self._last_edge_s = -math.inf
 
     def disarm(self) -> None:
         self._armed = False
@@ -187,9 +204,14 @@ class SimCamera:
                     self._frame_id += missed
             self._next_internal_s = start + period
             return start
+        if not self._pending and mode is TriggerMode.EXTERNAL and self._trigger_line is not None:
+            edge = self._trigger_line.next_edge_s(self._last_edge_s)
+            if edge is not None and edge <= self._clock.now_s() + timeout_s:
+                self._pending.append(edge)
         if not self._pending:
             self._clock.wait_until(self._clock.now_s() + timeout_s)
             raise HardwareTimeout(f"{self.url}: no trigger within {timeout_s:g} s")
+        self._last_edge_s = self._pending[0]
         return self._pending.popleft()
 
     def _digitise(self, signal: np.ndarray) -> np.ndarray:

@@ -108,3 +108,40 @@ def test_bad_configuration_key_is_named(tmp_path):
     done = run("--sim", "--config", str(config), timeout=120)
     assert done.returncode == 2
     assert f"{config}: [tracking] subset_px: must be odd" in done.stderr
+
+
+@pytest.mark.parametrize("source", ["period", "encoder"])
+def test_triggers_from_the_simulated_microcontroller_space_the_frames_as_planned(tmp_path, source):
+    config = tmp_path / "trigger.toml"
+    config.write_text(f'[trigger]\nsource = "{source}"\nencoder_counts_per_mm = 2000\n')
+    done = run(
+        "--sim",
+        "--material",
+        "metal",
+        "--until-strain",
+        "0.004",
+        "--json",
+        "--config",
+        str(config),
+        "--out",
+        str(tmp_path),
+    )
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(done.stdout)
+    assert summary["trigger_source"] == source and summary["frames_dropped"] == 0
+    assert summary["max_elongation_error_um_below_300um"] <= 1.5
+    rows = list(csv.DictReader((tmp_path / "strain.csv").open()))
+    times = [float(r["time_s"]) for r in rows]
+    crosshead = [float(r["crosshead_mm"]) for r in rows]
+    running = [i for i in range(1, len(rows)) if crosshead[i] > crosshead[i - 1]]
+    steady = running[len(running) // 4 :]
+    if source == "period":
+        period_s = summary["trigger_period_ticks"] / 2e6
+        assert summary["trigger_encoder_divisor"] == 0
+        assert all(abs(times[i] - times[i - 1] - period_s) < 1e-9 for i in range(1, len(rows)))
+    else:
+        step_mm = summary["trigger_encoder_divisor"] / 2000
+        assert summary["trigger_period_ticks"] == 0 and step_mm > 0
+        assert all(abs(crosshead[i] - crosshead[i - 1] - step_mm) < 1e-6 for i in steady)
+        interval = times[steady[-1]] - times[steady[-1] - 1]
+        assert interval == pytest.approx(summary["frame_period_s"], rel=1e-6)
