@@ -159,6 +159,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     frame.add_argument("--json", action="store_true", help="print JSON instead of a table")
     frame.add_argument("--out", metavar="FILE", help="also write the JSON to FILE")
+    for name, text in (
+        ("trigger-jitter", "trigger pulse timing of the real firmware under simavr"),
+        ("clock-sync", "host timestamp error after clock sync, firmware under simavr"),
+    ):
+        firmware = benches.add_parser(name, help=text)
+        firmware.add_argument("--json", action="store_true", help="print JSON, not a table")
+        firmware.add_argument("--out", metavar="FILE", help="also write the JSON to FILE")
 
     _add_plan_parser(commands)
     _add_run_parser(commands)
@@ -771,6 +778,14 @@ def _bench(args: argparse.Namespace) -> int:
             url=args.frame,
             duration_s=args.duration,
         )
+    if args.bench == "trigger-jitter":
+        from appliance.bench.trigger_jitter import run_trigger_jitter_benchmark
+
+        return run_trigger_jitter_benchmark(Path(args.out) if args.out else None, args.json)
+    if args.bench == "clock-sync":
+        from appliance.bench.clock_sync import run_clock_sync_benchmark
+
+        return run_clock_sync_benchmark(Path(args.out) if args.out else None, args.json)
     if args.bench == "sim":
         from appliance.bench.simulated import run_simulated_benchmark
 

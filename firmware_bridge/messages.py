@@ -169,7 +169,8 @@ MESSAGES: tuple[Message, ...] = (
         "TRIGGER",
         D_HOST,
         (("trigger_seq", "u32"), ("tick", "u64"), ("position", "i32")),
-        "a trigger pulse began at tick; its number since ARM and the encoder position",
+        "a trigger pulse began at tick; its number (1 = the first pulse after ARM) and the "
+        "encoder position",
     ),
     Message(
         0x91,

@@ -11,7 +11,7 @@ the next rising edge:
   counts per mm, as the simulated frame reports it) has advanced by the divisor since the
   last edge, found exactly from the crosshead's motion plan.
 
-Every edge is kept as a `SimTriggerEvent` (sequence number from 0, time, encoder position),
+Every edge is kept as a `SimTriggerEvent` (sequence number from 1, time, encoder position),
 as the firmware reports TRIGGER events. What it does not model: pulse width (the simulated
 camera takes the rising edge), jitter (edges are exact), a dead-man, or reverse motion (the
 encoder source follows forward travel only, like the firmware).
@@ -28,7 +28,8 @@ from appliance.trigger_plan import TriggerPlan
 
 @dataclass(frozen=True)
 class SimTriggerEvent:
-    """One trigger edge: its number since arming, simulation time, s, and encoder counts."""
+    """One trigger edge: its number (1 = the first after arming), simulation time, s, and
+    encoder counts."""
 
     trigger_seq: int
     time_s: float
@@ -92,7 +93,7 @@ class SimTriggerController:
                     edge = self._time_at_counts(target, max(armed, after_s + tick_s))
                     if edge is None:
                         return None
-                self.events.append(SimTriggerEvent(n, edge, self._counts_at(edge)))
+                self.events.append(SimTriggerEvent(n + 1, edge, self._counts_at(edge)))
                 if edge > after_s:
                     return edge
 

@@ -1,0 +1,599 @@
+"""The trigger firmware itself, built from source with avr-gcc and run on simavr over a pty.
+
+Every test talks to the real firmware through `firmware_bridge.simulator.SimulatedMcu` with
+pyserial, building and parsing frames with `firmware_bridge.framing`, and checks timing in
+simulated time (the harness's edge log of the trigger pin, and the ticks in the frames),
+never by the host's clock. Skipped, with the reason, when avr-gcc or libsimavr is missing.
+
+Bounds used below: an edge made by Timer1's compare unit is logged at its exact CPU cycle,
+so periods and widths match the command to one CPU cycle (62.5 ns); a TRIGGER's tick maps to
+its rising edge as tick * 500 ns + a constant offset (the time from reset to Timer1's start,
+under 1 ms), the same to one cycle for every pulse.
+"""
+
+from __future__ import annotations
+
+import itertools
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from firmware_bridge.firmware_build import (
+    SIMAVR_INCLUDE,
+    FirmwareBuildError,
+    build_firmware,
+    build_harness,
+    default_build_dir,
+)
+from firmware_bridge.framing import DecodedFrame, FrameDecoder, encode
+from firmware_bridge.messages import (
+    BY_NAME,
+    PROTOCOL_VERSION,
+    START_BYTE,
+    TABLE_HASH,
+    ErrorCode,
+    ResetCause,
+    StopReason,
+    TriggerSource,
+    crc16,
+)
+from firmware_bridge.simulator import EncoderSegment, SimulatedMcu
+
+ROOT = Path(__file__).resolve().parents[2]
+TICK_NS = 500
+CYCLE_NS = 62.5
+NS_PER_S = 1_000_000_000
+
+
+@pytest.fixture(scope="session")
+def binaries() -> dict[str, Path]:
+    if shutil.which("avr-gcc") is None:
+        pytest.skip("avr-gcc not installed (apt-get install gcc-avr avr-libc)")
+    if not (SIMAVR_INCLUDE / "sim_avr.h").is_file():
+        pytest.skip("libsimavr headers not installed (apt-get install simavr libsimavr-dev)")
+    out = default_build_dir()
+    try:
+        return {
+            "elf": build_firmware(out),
+            "test_elf": build_firmware(out, test_hooks=True),
+            "harness": build_harness(out),
+        }
+    except FirmwareBuildError as error:
+        if "not found" in str(error):
+            pytest.skip(str(error))
+        raise
+
+
+class Link:
+    """The host end: numbered frames out, decoded frames in, everything received kept."""
+
+    def __init__(self, port) -> None:
+        self.port = port
+        self.decoder = FrameDecoder()
+        self.seq = 0
+        self.received: list[DecodedFrame] = []
+        self._unread = 0
+
+    def send(self, name: str, **values) -> int:
+        seq = self.seq
+        self.port.write(encode(name, seq, **values))
+        self.seq = (seq + 1) % 256
+        return seq
+
+    def send_raw(self, data: bytes) -> None:
+        self.port.write(data)
+
+    def poll(self) -> None:
+        data = self.port.read(max(1, self.port.in_waiting))
+        if data:
+            self.received.extend(self.decoder.feed(data))
+
+    def wait_for(
+        self, match: Callable[[DecodedFrame], bool], timeout_s: float = 2.0
+    ) -> DecodedFrame:
+        """The first matching frame after the one the previous wait_for returned; frames
+        skipped on the way stay in `received` (for `frames()`) but are not matched again."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            for index in range(self._unread, len(self.received)):
+                if match(self.received[index]):
+                    self._unread = index + 1
+                    return self.received[index]
+            if time.monotonic() > deadline:
+                names = [f.name for f in self.received[self._unread :]]
+                raise AssertionError(f"no matching frame in {timeout_s} s; unread: {names}")
+            self.poll()
+
+    def expect(self, name: str, timeout_s: float = 2.0, **values) -> DecodedFrame:
+        def match(frame: DecodedFrame) -> bool:
+            return frame.name == name and all(frame.values.get(k) == v for k, v in values.items())
+
+        return self.wait_for(match, timeout_s)
+
+    def hello(self, seq: int = 0) -> DecodedFrame:
+        self.seq = seq
+        self.send("HELLO")
+        return self.expect("HELLO_REPLY")
+
+    def command(self, name: str, **values) -> DecodedFrame:
+        """Send a command; its ACK or ERROR."""
+        seq = self.send(name, **values)
+        return self.wait_for(
+            lambda f: (
+                (f.name == "ACK" and f.values["acked_seq"] == seq)
+                or (f.name == "ERROR" and f.values["rejected_seq"] == seq)
+            )
+        )
+
+    def frames(self, name: str) -> list[DecodedFrame]:
+        return [f for f in self.received if f.name == name]
+
+
+def configure(
+    link: Link,
+    *,
+    source: TriggerSource = TriggerSource.PERIOD,
+    width: int = 200,
+    period: int = 2000,
+    divisor: int = 0,
+    count: int = 0,
+    start_tick: int = 0,
+) -> DecodedFrame:
+    return link.command(
+        "CONFIGURE",
+        source=int(source),
+        pulse_width_ticks=width,
+        period_ticks=period,
+        encoder_divisor=divisor,
+        count=count,
+        start_tick=start_tick,
+    )
+
+
+def raw_frame(seq: int, message_id: int, payload: bytes = b"") -> bytes:
+    body = bytes([len(payload) + 2, seq, message_id]) + payload
+    crc = crc16(body)
+    return bytes([START_BYTE]) + body + bytes([crc & 0xFF, crc >> 8])
+
+
+def pulses(mcu: SimulatedMcu) -> list[tuple[int, int]]:
+    """(rise ns, fall ns) of every complete pulse in the edge log."""
+    edges = [(ns, level) for ns, _, level in mcu.edges()]
+    result = []
+    for (t0, l0), (t1, l1) in itertools.pairwise(edges):
+        if l0 == 1 and l1 == 0:
+            result.append((t0, t1))
+    return result
+
+
+def wait_until(condition: Callable[[], bool], timeout_s: float = 2.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not met in time")
+        time.sleep(0.005)
+
+
+@pytest.fixture
+def start_mcu(binaries, tmp_path) -> Iterator[Callable[..., tuple[SimulatedMcu, Link]]]:
+    started: list[tuple[SimulatedMcu, object]] = []
+
+    def start(*, test_build: bool = False, encoder=None) -> tuple[SimulatedMcu, Link]:
+        mcu = SimulatedMcu(
+            binaries["test_elf" if test_build else "elf"],
+            binaries["harness"],
+            tmp_path / f"mcu{len(started)}",
+            encoder_schedule=encoder,
+            hold=True,
+        )
+        mcu.start()
+        port = mcu.open_serial(timeout=0.01)
+        started.append((mcu, port))
+        return mcu, Link(port)
+
+    yield start
+    for mcu, port in started:
+        port.close()
+        mcu.stop()
+
+
+def test_generated_header_is_current():
+    done = subprocess.run(
+        [sys.executable, "-m", "firmware_bridge.gen_header", "--check"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+
+
+def test_boot_then_handshake(start_mcu):
+    mcu, link = start_mcu()
+    boot = link.expect("BOOT")
+    assert boot.seq == 0 and boot.values["cause"] == ResetCause.POWER_ON
+    reply = link.hello(seq=17).values
+    assert (reply["version_major"], reply["version_minor"]) == PROTOCOL_VERSION
+    assert reply["table_hash"] == TABLE_HASH
+    assert reply["tick_hz"] == 2_000_000
+    later = link.hello(seq=200).values
+    assert later["tick"] > reply["tick"] > 0
+
+
+@pytest.mark.parametrize(
+    ("width", "period", "count"),
+    [(200, 2000, 20), (60_000, 150_000, 3)],
+    ids=["1ms-period", "75ms-period-long-pulse"],
+)
+def test_period_mode_edges_match_the_command(start_mcu, width, period, count):
+    mcu, link = start_mcu()
+    now = link.hello().values["tick"]
+    start_tick = now + 100_000
+    assert (
+        configure(link, width=width, period=period, count=count, start_tick=start_tick).name
+        == "ACK"
+    )
+    assert link.command("ARM").name == "ACK"
+    stopped = link.expect("STOPPED", timeout_s=2.0 + count * period * TICK_NS / NS_PER_S)
+    assert stopped.values == {"reason": StopReason.COUNT_DONE, "triggers": count}
+
+    triggers = link.frames("TRIGGER")
+    assert [t.values["trigger_seq"] for t in triggers] == list(range(1, count + 1))
+    assert [t.values["tick"] for t in triggers] == [start_tick + k * period for k in range(count)]
+    measured = pulses(mcu)
+    assert len(measured) == count
+    assert mcu.edges()[-1][2] == 0
+    for rise, fall in measured:
+        assert abs((fall - rise) - width * TICK_NS) <= CYCLE_NS
+    for (rise0, _), (rise1, _) in itertools.pairwise(measured):
+        assert abs((rise1 - rise0) - period * TICK_NS) <= CYCLE_NS
+    offsets = [
+        rise - t.values["tick"] * TICK_NS for (rise, _), t in zip(measured, triggers, strict=True)
+    ]
+    assert 0 <= min(offsets) and max(offsets) < 1_000_000
+    assert max(offsets) - min(offsets) <= CYCLE_NS
+
+
+def test_start_tick_in_the_past_is_refused(start_mcu):
+    _, link = start_mcu()
+    now = link.hello().values["tick"]
+    assert configure(link, start_tick=max(1, now - 1000)).name == "ACK"
+    seq = link.seq
+    refused = link.command("ARM")
+    assert refused.name == "ERROR"
+    assert refused.values == {
+        "code": ErrorCode.BAD_VALUE,
+        "detail": BY_NAME["ARM"].id,
+        "rejected_seq": seq,
+    }
+
+
+@pytest.mark.parametrize("counts_per_s", [17_000.0, -17_000.0], ids=["forward", "reverse"])
+def test_encoder_mode_triggers_every_divisor_counts(start_mcu, counts_per_s):
+    divisor, count = 100, 8
+    mcu, link = start_mcu(encoder=[EncoderSegment(0, counts_per_s)])
+    link.hello()
+    assert (
+        configure(link, source=TriggerSource.ENCODER, width=200, divisor=divisor, count=count).name
+        == "ACK"
+    )
+    assert link.command("ARM").name == "ACK"
+    link.expect("STOPPED", timeout_s=3.0)
+
+    triggers = [t.values for t in link.frames("TRIGGER")]
+    assert len(triggers) == count
+    step = divisor if counts_per_s > 0 else -divisor
+    positions = [t["position"] for t in triggers]
+    assert positions == [positions[0] + k * step for k in range(count)]
+    expected_ticks = divisor / abs(counts_per_s) * 2_000_000
+    gaps = [b["tick"] - a["tick"] for a, b in itertools.pairwise(triggers[1:])]
+    assert all(abs(gap - expected_ticks) <= 20 for gap in gaps), gaps
+    measured = pulses(mcu)
+    assert len(measured) == count
+    assert all(abs((fall - rise) - 200 * TICK_NS) <= CYCLE_NS for rise, fall in measured)
+    offsets = [rise - t["tick"] * TICK_NS for (rise, _), t in zip(measured, triggers, strict=True)]
+    assert max(offsets) - min(offsets) <= CYCLE_NS
+
+    link.send("GET_POSITION")
+    a = link.expect("POSITION").values
+    time.sleep(0.05)
+    link.send("GET_POSITION")
+    b = link.expect("POSITION").values
+    rate = (b["position"] - a["position"]) / ((b["tick"] - a["tick"]) / 2_000_000)
+    assert rate == pytest.approx(counts_per_s, rel=0.02)
+
+
+def test_dead_man_stops_a_silent_host(start_mcu):
+    mcu, link = start_mcu()
+    link.hello()
+    assert link.command("SET_DEAD_MAN", timeout_ms=100).name == "ACK"
+    assert configure(link, width=200, period=2000).name == "ACK"
+    assert link.command("ARM").name == "ACK"
+    stopped = link.expect("STOPPED", timeout_s=3.0).values
+    assert stopped["reason"] == StopReason.DEAD_MAN
+    measured = pulses(mcu)
+    span_ms = (measured[-1][0] - measured[0][0]) / 1e6
+    assert 97 <= span_ms <= 102, span_ms
+    assert len(measured) == stopped["triggers"]
+    assert mcu.edges()[-1][2] == 0
+
+
+def test_disarm_stops_and_reports(start_mcu):
+    mcu, link = start_mcu()
+    link.hello()
+    assert configure(link, width=1000, period=4000).name == "ACK"
+    assert link.command("ARM").name == "ACK"
+    for _ in range(5):
+        link.expect("TRIGGER")
+    assert configure(link).values["code"] == ErrorCode.BAD_STATE
+    assert link.command("DISARM").name == "ACK"
+    stopped = link.expect("STOPPED").values
+    assert stopped["reason"] == StopReason.DISARMED
+    time.sleep(0.05)
+    link.poll()
+    assert len(link.frames("TRIGGER")) == stopped["triggers"]
+    edges_after_stop = mcu.edges()
+    time.sleep(0.05)
+    assert mcu.edges() == edges_after_stop
+    assert edges_after_stop[-1][2] == 0
+    assert len(pulses(mcu)) == stopped["triggers"]
+    assert link.command("DISARM").name == "ACK"
+
+
+def test_a_trigger_flood_loses_events_not_edges_or_control(start_mcu):
+    """5 kHz triggers make more TRIGGER frames than the line carries: frames are dropped
+    (gaps in trigger_seq), the edges stay exact and the host can still ping and disarm."""
+    mcu, link = start_mcu()
+    link.hello()
+    assert configure(link, width=100, period=400).name == "ACK"
+    assert link.command("ARM").name == "ACK"
+    time.sleep(0.15)
+    for token in range(3):
+        link.send("PING", token=token)
+        link.expect("PONG", token=token)
+    assert link.command("DISARM").name == "ACK"
+    stopped = link.expect("STOPPED").values
+    seqs = [t.values["trigger_seq"] for t in link.frames("TRIGGER")]
+    assert seqs == sorted(seqs) and len(seqs) < stopped["triggers"]
+    measured = pulses(mcu)
+    assert len(measured) == stopped["triggers"]
+    for (rise0, fall0), (rise1, _) in itertools.pairwise(measured):
+        assert abs((fall0 - rise0) - 100 * TICK_NS) <= CYCLE_NS
+        assert abs((rise1 - rise0) - 400 * TICK_NS) <= CYCLE_NS
+
+
+@pytest.mark.parametrize(
+    "settings_",
+    [
+        {"width": 2000, "period": 2000},
+        {"width": 200, "period": 0},
+        {"width": 10, "period": 2000},
+        {"width": 1990, "period": 2000},
+        {"source": TriggerSource.ENCODER, "divisor": 0},
+        {"source": 7},
+    ],
+    ids=[
+        "width>=period",
+        "zero-period",
+        "width-too-short",
+        "gap-too-short",
+        "zero-divisor",
+        "source",
+    ],
+)
+def test_bad_values_are_refused(start_mcu, settings_):
+    _, link = start_mcu()
+    link.hello()
+    seq = link.seq
+    refused = configure(link, **settings_)
+    assert refused.name == "ERROR"
+    assert refused.values == {
+        "code": ErrorCode.BAD_VALUE,
+        "detail": BY_NAME["CONFIGURE"].id,
+        "rejected_seq": seq,
+    }
+    assert link.command("ARM").values["code"] == ErrorCode.BAD_STATE
+
+
+@pytest.fixture(scope="module")
+def shared_link(binaries, tmp_path_factory) -> Iterator[Link]:
+    mcu = SimulatedMcu(
+        binaries["elf"], binaries["harness"], tmp_path_factory.mktemp("shared-mcu"), hold=True
+    )
+    with mcu:
+        port = mcu.open_serial(timeout=0.01)
+        try:
+            yield Link(port)
+        finally:
+            port.close()
+
+
+def _good_crc_then_bad(seq: int) -> bytes:
+    frame = bytearray(encode("PING", seq, token=1))
+    frame[-1] ^= 0x5A
+    return bytes(frame)
+
+
+@pytest.mark.parametrize(
+    ("make", "code", "detail"),
+    [
+        (_good_crc_then_bad, ErrorCode.BAD_CRC, BY_NAME["PING"].id),
+        (lambda seq: bytes([START_BYTE, 1]), ErrorCode.BAD_LENGTH, 1),
+        (lambda seq: bytes([START_BYTE, 41]), ErrorCode.BAD_LENGTH, 41),
+        (lambda seq: raw_frame(seq, 0x55), ErrorCode.UNKNOWN_MESSAGE, 0x55),
+        (
+            lambda seq: raw_frame(seq, BY_NAME["PONG"].id, bytes(12)),
+            ErrorCode.UNKNOWN_MESSAGE,
+            0x82,
+        ),
+        (
+            lambda seq: raw_frame(seq, BY_NAME["PING"].id, b"\x01\x02\x03"),
+            ErrorCode.BAD_PAYLOAD,
+            0x02,
+        ),
+        (lambda seq: raw_frame(seq, BY_NAME["ARM"].id, b"\x00"), ErrorCode.BAD_PAYLOAD, 0x04),
+        (lambda seq: encode("PING", (seq + 5) % 256, token=7), ErrorCode.OUT_OF_SEQUENCE, None),
+        (lambda seq: encode("PING", seq, token=7)[:6], ErrorCode.BAD_LENGTH, 6),
+    ],
+    ids=[
+        "bad-crc",
+        "length-1",
+        "length-41",
+        "unknown-id",
+        "to-host-id",
+        "ping-3-bytes",
+        "arm-with-payload",
+        "out-of-sequence",
+        "truncated",
+    ],
+)
+def test_malformed_frames_get_their_error_and_the_stream_survives(shared_link, make, code, detail):
+    link = shared_link
+    link.hello()
+    seq = link.seq
+    link.send_raw(make(seq))
+    error = link.expect("ERROR", code=int(code), timeout_s=2.0).values
+    consumes_seq = code in (ErrorCode.UNKNOWN_MESSAGE, ErrorCode.BAD_PAYLOAD)
+    if code == ErrorCode.OUT_OF_SEQUENCE:
+        assert error == {"code": code, "detail": seq, "rejected_seq": (seq + 5) % 256}
+    elif code == ErrorCode.BAD_LENGTH:
+        assert error["detail"] == detail
+    else:
+        assert error == {"code": code, "detail": detail, "rejected_seq": seq}
+    if consumes_seq:
+        link.seq = (seq + 1) % 256
+    token = 0xC0FFEE00 + link.seq
+    link.send("PING", token=token)
+    link.expect("PONG", token=token)
+
+
+def test_pong_ticks_are_reception_ticks(shared_link):
+    link = shared_link
+    before = link.hello().values["tick"]
+    ticks = []
+    for token in range(5):
+        link.send("PING", token=token)
+        ticks.append(link.expect("PONG", token=token).values["tick"])
+    after = link.hello(seq=3).values["tick"]
+    assert before < ticks[0] and ticks == sorted(ticks) and ticks[-1] < after
+
+
+@st.composite
+def _garbage(draw) -> bytes:
+    kind = draw(st.sampled_from(["noise", "truncated", "corrupted", "starts"]))
+    if kind == "noise":
+        return draw(st.binary(min_size=1, max_size=40))
+    if kind == "starts":
+        return bytes(draw(st.lists(st.sampled_from([START_BYTE, 2, 6, 40, 0, 0xFF]), max_size=12)))
+    frame = bytearray(
+        encode(
+            "CONFIGURE",
+            draw(st.integers(0, 255)),
+            source=0,
+            pulse_width_ticks=1,
+            period_ticks=2,
+            encoder_divisor=3,
+            count=4,
+            start_tick=5,
+        )
+        if draw(st.booleans())
+        else encode("PING", draw(st.integers(0, 255)), token=draw(st.integers(0, 2**32 - 1)))
+    )
+    if kind == "truncated":
+        return bytes(frame[: draw(st.integers(1, len(frame) - 1))])
+    frame[draw(st.integers(1, len(frame) - 1))] ^= draw(st.integers(1, 255))
+    return bytes(frame)
+
+
+_tokens = itertools.count(1)
+
+
+def _pongs_expected(stream: bytes, expected_seq: int) -> list[int]:
+    """The PING tokens the firmware must answer for `stream`: the frames the host's reference
+    decoder finds in it (a truncated frame can, rarely, be completed into a valid one by the
+    next bytes; both parsers then agree on that), through the firmware's sequence rule."""
+    decoder = FrameDecoder()
+    frames = decoder.feed(stream)
+    while decoder.pending():
+        frames.extend(decoder.give_up_partial())
+    tokens = []
+    for frame in frames:
+        if frame.name == "HELLO" and not frame.problem:
+            expected_seq = (frame.seq + 1) % 256
+        elif frame.seq == expected_seq:
+            expected_seq = (expected_seq + 1) % 256
+            if frame.name == "PING" and not frame.problem:
+                tokens.append(frame.values["token"])
+    return tokens
+
+
+@settings(
+    max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(st.lists(st.tuples(_garbage(), st.booleans()), min_size=1, max_size=6))
+def test_firmware_parser_survives_garbage(shared_link, pieces):
+    """Garbage, truncated and corrupted frames interleaved with PINGs: the firmware answers
+    exactly the PINGs the host's reference decoder finds (normally all of them), and nothing
+    else, so the stream is never desynchronised."""
+    link = shared_link
+    link.hello(seq=0)
+    stream = b""
+    sent = []
+    for garbage, ping_after in [*pieces, (b"", True)]:
+        stream += garbage
+        if ping_after:
+            token = next(_tokens)
+            sent.append(token)
+            stream += encode("PING", link.seq, token=token)
+            link.seq = (link.seq + 1) % 256
+    expected = _pongs_expected(stream, 1)
+    first = len(link.received)
+    link.send_raw(stream)
+    for token in expected:
+        link.expect("PONG", token=token, timeout_s=2.0)
+    link.hello(seq=0)
+    answered = [
+        f.values["token"]
+        for f in link.received[first:]
+        if f.name == "PONG" and f.values["token"] in sent
+    ]
+    assert answered == expected
+
+
+def test_watchdog_resets_a_hung_firmware(start_mcu):
+    mcu, link = start_mcu(test_build=True)
+    assert link.expect("BOOT").values["cause"] == ResetCause.POWER_ON
+    link.hello()
+    assert configure(link, width=200, period=2000).name == "ACK"
+    assert link.command("ARM").name == "ACK"
+    link.expect("TRIGGER")
+    mcu.drive_pin("C0", 0)
+    boot = link.expect("BOOT", timeout_s=3.0)
+    assert boot.values["cause"] == ResetCause.WATCHDOG and boot.seq == 0
+    assert len(mcu.resets()) == 1
+    wait_until(lambda: mcu.edges()[-1][2] == 0)
+    link.hello()
+    link.send("PING", token=99)
+    link.expect("PONG", token=99)
+    after_reset = mcu.edges()
+    time.sleep(0.05)
+    assert mcu.edges() == after_reset
+
+
+def test_production_build_has_no_hang_pin(start_mcu):
+    mcu, link = start_mcu()
+    link.expect("BOOT")
+    link.hello()
+    mcu.drive_pin("C0", 0)
+    time.sleep(0.3)
+    link.send("PING", token=5)
+    link.expect("PONG", token=5)
+    assert mcu.resets() == []
+    assert len(link.frames("BOOT")) == 1
