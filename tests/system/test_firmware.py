@@ -14,7 +14,6 @@ under 1 ms), the same to one cycle for every pulse.
 from __future__ import annotations
 
 import itertools
-import shutil
 import subprocess
 import sys
 import time
@@ -25,13 +24,6 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from firmware_bridge.firmware_build import (
-    SIMAVR_INCLUDE,
-    FirmwareBuildError,
-    build_firmware,
-    build_harness,
-    default_build_dir,
-)
 from firmware_bridge.framing import DecodedFrame, FrameDecoder, encode
 from firmware_bridge.messages import (
     BY_NAME,
@@ -45,6 +37,7 @@ from firmware_bridge.messages import (
     crc16,
 )
 from firmware_bridge.simulator import EncoderSegment, SimulatedMcu
+from tests.system.firmware_peers import firmware_binaries
 
 ROOT = Path(__file__).resolve().parents[2]
 TICK_NS = 500
@@ -54,21 +47,7 @@ NS_PER_S = 1_000_000_000
 
 @pytest.fixture(scope="session")
 def binaries() -> dict[str, Path]:
-    if shutil.which("avr-gcc") is None:
-        pytest.skip("avr-gcc not installed (apt-get install gcc-avr avr-libc)")
-    if not (SIMAVR_INCLUDE / "sim_avr.h").is_file():
-        pytest.skip("libsimavr headers not installed (apt-get install simavr libsimavr-dev)")
-    out = default_build_dir()
-    try:
-        return {
-            "elf": build_firmware(out),
-            "test_elf": build_firmware(out, test_hooks=True),
-            "harness": build_harness(out),
-        }
-    except FirmwareBuildError as error:
-        if "not found" in str(error):
-            pytest.skip(str(error))
-        raise
+    return firmware_binaries()
 
 
 class Link:

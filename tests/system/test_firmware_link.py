@@ -26,11 +26,7 @@ from hypothesis import strategies as st
 
 from firmware_bridge import firmware_build
 from firmware_bridge.firmware_build import (
-    SIMAVR_INCLUDE,
     FirmwareBuildError,
-    build_firmware,
-    build_harness,
-    default_build_dir,
 )
 from firmware_bridge.framing import DecodedFrame, FrameDecoder, encode
 from firmware_bridge.link import (
@@ -52,6 +48,7 @@ from firmware_bridge.messages import (
     TriggerSource,
 )
 from firmware_bridge.simulator import SimulatedMcu
+from tests.system.firmware_peers import firmware_binaries
 
 TICK_NS = 500
 OTHER_HASH = TABLE_HASH ^ 0x00010000
@@ -59,22 +56,14 @@ OTHER_HASH = TABLE_HASH ^ 0x00010000
 
 @pytest.fixture(scope="session")
 def binaries(tmp_path_factory) -> dict[str, Path]:
-    if shutil.which("avr-gcc") is None:
-        pytest.skip("avr-gcc not installed (apt-get install gcc-avr avr-libc)")
-    if not (SIMAVR_INCLUDE / "sim_avr.h").is_file():
-        pytest.skip("libsimavr headers not installed (apt-get install simavr libsimavr-dev)")
-    out = default_build_dir()
+    built = firmware_binaries()
     try:
-        return {
-            "elf": build_firmware(out),
-            "test_elf": build_firmware(out, test_hooks=True),
-            "harness": build_harness(out),
-            "other_table_elf": _build_with_other_table(tmp_path_factory.mktemp("other-table")),
-        }
+        built["other_table_elf"] = _build_with_other_table(tmp_path_factory.mktemp("other-table"))
     except FirmwareBuildError as error:
         if "not found" in str(error):
             pytest.skip(str(error))
         raise
+    return built
 
 
 def _build_with_other_table(work: Path) -> Path:
