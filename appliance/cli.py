@@ -11,6 +11,7 @@ Subcommands:
     info    summarise a recording and check its integrity.
     camera-check  grab frames from a camera and report size, format, rate and losses.
     frame-check   read the frame controller's state and report it, with read rate and latency.
+    trigger-check handshake with the trigger microcontroller, time its link, fit its clock.
 
 Bad input ends with one line `extensometer: error: ...` naming the culprit and exit status 2.
 """
@@ -291,6 +292,22 @@ def _add_run_parser(commands) -> None:
     )
     frame_check.add_argument("--reads", type=_read_count, default=50, help="reads (50)")
     frame_check.add_argument("--json", action="store_true", help="print JSON on stdout")
+
+    trigger_check = commands.add_parser(
+        "trigger-check",
+        help="handshake with the trigger microcontroller and time its link",
+        description=(
+            "Open the trigger microcontroller's serial port, check that its firmware speaks "
+            "this host's protocol and message table, time N round trips and fit its clock, "
+            "and read the encoder position. Nothing is triggered. Exit status 1 when it "
+            "does not answer or runs other firmware (both versions and hashes named)."
+        ),
+    )
+    trigger_check.add_argument(
+        "--port", required=True, metavar="URL", help="serial device or pyserial URL"
+    )
+    trigger_check.add_argument("--pings", type=_read_count, default=50, help="round trips (50)")
+    trigger_check.add_argument("--json", action="store_true", help="print JSON on stdout")
 
 
 def _add_modbus_options(parser: argparse.ArgumentParser) -> None:
@@ -724,6 +741,17 @@ def _device_check(args: argparse.Namespace) -> int:
     from appliance.config import Config, load_config
     from hal.errors import HardwareConfigError, HardwareError
 
+    if args.command == "trigger-check":
+        from firmware_bridge.link import FirmwareError
+
+        try:
+            report = device_check.check_trigger(args.port, pings=args.pings)
+        except FirmwareError as error:
+            print(f"extensometer: trigger-check: {args.port}: {error}", file=sys.stderr)
+            return 1
+        text = device_check.trigger_report_lines(report)
+        print(json.dumps(report, indent=2) if args.json else "\n".join(text))
+        return 0
     config = load_config(args.config) if args.config else Config()
     try:
         if args.command == "camera-check":
@@ -814,7 +842,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _serve(args)
         if args.command == "info":
             return _info(args)
-        if args.command in ("camera-check", "frame-check"):
+        if args.command in ("camera-check", "frame-check", "trigger-check"):
             return _device_check(args)
         return _bench(args)
     except InputError as error:

@@ -1,8 +1,10 @@
 """Installer's checks of the devices: `extensometer camera-check` and `frame-check`.
 
 The first commands run on a new installation, before any test: does the camera deliver
-frames of the expected size and format at the expected rate without loss, and does the
-frame's controller answer with a sensible state, how fast?
+frames of the expected size and format at the expected rate without loss, does the frame's
+controller answer with a sensible state, how fast, and does the trigger microcontroller run
+the firmware this host speaks (`check_trigger`: handshake, round trips, clock fit, encoder
+position; nothing is triggered)?
 
 `check_camera` opens a camera, configures it (exposure, gain, region, pixel format of the
 configuration, or the given overrides), free-runs it at a frame rate, grabs N frames, and
@@ -271,3 +273,62 @@ def frame_report_lines(report: dict[str, Any]) -> list[str]:
 
 def _num(value: float | None) -> str:
     return "n/a" if value is None else f"{value:.2f}"
+
+
+def check_trigger(url: str, *, pings: int = 50, timeout_s: float = 2.0) -> dict[str, Any]:
+    """Handshake with the trigger microcontroller, time `pings` round trips, fit its clock.
+
+    Args:
+        url: the serial port (a device path or pyserial URL).
+        pings: round trips to time (>= 1), besides those of the handshake.
+        timeout_s: timeout of the handshake and of each request.
+
+    Returns:
+        A JSON-ready report: `port`, `protocol_version`, `table_hash` (hex) and whether it
+        matches this host's, `tick_hz`, `round_trip_ms` (p50/p99/max), `clock_rate_ppm`
+        (the fitted tick rate's deviation from nominal), `clock_residual_us`, `encoder_position`.
+
+    Raises:
+        firmware_bridge.link.FirmwareError: the port cannot be opened, the firmware does not
+            answer, or it speaks another protocol or table (named in the message).
+    """
+    from firmware_bridge.link import McuLink
+
+    if pings < 1:
+        raise ValueError(f"pings must be >= 1, got {pings}")
+    with McuLink(url, sync_interval_s=None) as link:
+        info = link.connect(timeout_s)
+        trips = [link.ping(timeout_s=timeout_s) for _ in range(pings)]
+        position = link.position(timeout_s=timeout_s)
+        estimate = link.clock_estimate()
+    rtt = np.asarray([t.received_ns - t.sent_ns for t in trips], dtype=np.float64) * 1e-6
+    report: dict[str, Any] = {
+        "port": url,
+        "protocol_version": f"{info.version[0]}.{info.version[1]}",
+        "table_hash": f"{info.table_hash:#010x}",
+        "tick_hz": info.tick_hz,
+        "pings": pings,
+        "round_trip_ms": _percentiles(rtt),
+        "clock_rate_ppm": (
+            (estimate.rate_hz / info.tick_hz - 1.0) * 1e6 if estimate is not None else None
+        ),
+        "clock_residual_us": estimate.residual_rms_ns * 1e-3 if estimate is not None else None,
+        "encoder_position": position.position,
+    }
+    return report
+
+
+def trigger_report_lines(report: dict[str, Any]) -> list[str]:
+    """The trigger microcontroller report as aligned lines for a terminal."""
+    rtt = report["round_trip_ms"]
+    return [
+        f"port               {report['port']}",
+        f"firmware           protocol {report['protocol_version']}, table "
+        f"{report['table_hash']} (matches this host)",
+        f"tick               {report['tick_hz']} Hz; fitted rate "
+        f"{_num(report['clock_rate_ppm'])} ppm off, residual "
+        f"{_num(report['clock_residual_us'])} us",
+        f"round trip         p50 {_num(rtt['p50'])} ms, p99 {_num(rtt['p99'])} ms over "
+        f"{report['pings']} pings",
+        f"encoder            {report['encoder_position']} counts",
+    ]

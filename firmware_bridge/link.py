@@ -75,6 +75,10 @@ _FRAME_OVERHEAD = 6
 """Start byte, LEN, SEQ, ID and the two CRC bytes."""
 
 
+FIRMWARE_BAUD = 500000
+"""The firmware's UART rate (firmware/config.h: UART_BAUD), 8N1."""
+
+
 class FirmwareError(Exception):
     """Base of every error of the trigger microcontroller's link."""
 
@@ -321,7 +325,8 @@ class McuLink:
     Args:
         url: a pyserial URL or device path (``/dev/ttyUSB0``, a pty path, ``loop://``,
             ``socket://127.0.0.1:5000``).
-        baudrate: the serial rate (ignored by ptys, ``loop://`` and ``socket://``).
+        baudrate: the serial rate (ignored by ptys, ``loop://`` and ``socket://``); the
+            firmware's 500000 by default.
         expected_version: the protocol (major, minor) this host speaks.
         expected_table_hash: the message table's hash this host was built from.
         clock_ns: the host clock (ns) for send/receive stamps and event times.
@@ -349,7 +354,7 @@ class McuLink:
         self,
         url: str,
         *,
-        baudrate: int = 115200,
+        baudrate: int = FIRMWARE_BAUD,
         expected_version: tuple[int, int] = PROTOCOL_VERSION,
         expected_table_hash: int = TABLE_HASH,
         clock_ns: Callable[[], int] = time.monotonic_ns,
