@@ -93,11 +93,15 @@ class TriggerConfig:
     `encoder` = it fires every N counts of the crosshead encoder, N the planned
     frame-to-frame travel (`appliance.trigger_plan`). The simulated test has a simulated
     microcontroller on the simulated machine's encoder (`encoder_counts_per_mm`).
-    `pulse_width_us` is the trigger pulse's width.
+    `pulse_width_us` is the trigger pulse's width. `url` names the real microcontroller's
+    serial port (a device path or pyserial URL); empty = the simulated one. In this version
+    the real microcontroller times the simulated camera in a real-time simulated test
+    (`appliance.mcu_trigger`).
     """
 
     source: str = field(default="internal", metadata={"choices": ("internal", "period", "encoder")})
-    pulse_width_us: float = field(default=10.0, metadata=_range(1.0, 100000.0))
+    pulse_width_us: float = field(default=60.0, metadata=_range(50.0, 100000.0))
+    url: str = ""
     encoder_counts_per_mm: float = field(default=1000.0, metadata=_range(1.0, 1e7))
 
 

@@ -213,6 +213,7 @@ class _Rig:
     commands: bool
     block_when_full: bool
     world: Any = None
+    mcu_line: Any = None
 
 
 def _sim_rig(config: Config) -> _Rig:
@@ -231,6 +232,9 @@ def _sim_rig(config: Config) -> _Rig:
         if g.centre_x_px is not None and g.centre_y_px is not None
         else world.specimen_centre_px
     )
+    mcu_line = None
+    if config.trigger.url:
+        mcu_line = _connect_trigger_mcu(config, world)
     return _Rig(
         camera=world.camera,
         frame=world.frame,
@@ -241,7 +245,46 @@ def _sim_rig(config: Config) -> _Rig:
         commands=True,
         block_when_full=world.pace is Pace.FAST,
         world=world,
+        mcu_line=mcu_line,
     )
+
+
+def _release_trigger_mcu(rig: _Rig) -> None:
+    """Disarm and close the real trigger microcontroller's link, if the test has one."""
+    line = rig.mcu_line
+    if line is None:
+        return
+    from firmware_bridge.link import FirmwareError
+
+    try:
+        line.stop()
+    except FirmwareError:
+        pass
+    line.link.close()
+    rig.mcu_line = None
+
+
+def _connect_trigger_mcu(config: Config, world: Any) -> Any:
+    """The real trigger microcontroller at `[trigger] url`, wired to the simulated camera."""
+    from appliance.mcu_trigger import McuTriggerLine
+    from firmware_bridge.link import FirmwareError, McuLink
+
+    if config.trigger.source == "internal":
+        raise InputError("[trigger] url: set, but [trigger] source is internal")
+    if not config.sim.realtime:
+        raise InputError("[trigger] url: the microcontroller runs in real time: set [sim] realtime")
+    try:
+        link = McuLink(config.trigger.url)
+        try:
+            link.connect()
+        except BaseException:
+            link.close()
+            raise
+    except FirmwareError as exc:
+        raise InputError(f"[trigger] url: {config.trigger.url}: {exc}") from None
+    line = McuTriggerLine(link, lambda host_ns: world.clock.at_wall_s(host_ns * 1e-9))
+    world.camera.wire_trigger_input(line)
+    return line
 
 
 def _hardware_rig(config: Config) -> _Rig:
@@ -305,17 +348,21 @@ def _prepare_triggers(
             "version drives in the simulated test only"
         )
     controller = rig.world.trigger
+    tick_hz = rig.mcu_line.link.firmware.tick_hz if rig.mcu_line else controller.tick_hz
     try:
         triggers = plan_triggers(
             plan,
-            tick_hz=controller.tick_hz,
+            tick_hz=tick_hz,
             counts_per_mm=config.trigger.encoder_counts_per_mm if source == "encoder" else None,
             pulse_width_us=config.trigger.pulse_width_us,
         )
     except ValueError as exc:
         raise InputError(f"[trigger] pulse_width_us: {exc}") from None
-    controller.configure(triggers)
     camera.prepare(TriggerInfo(mode=TriggerMode.EXTERNAL))
+    if rig.mcu_line is not None:
+        rig.mcu_line.start(triggers)
+        return triggers
+    controller.configure(triggers)
     controller.arm(rig.world.clock.now_s())
     return triggers
 
@@ -329,7 +376,7 @@ def check_devices(config: Config, *, simulate: bool) -> None:
         HardwareError: a backend refusing its URL.
     """
     if simulate:
-        _sim_rig(config)
+        _release_trigger_mcu(_sim_rig(config))
     else:
         _hardware_rig(config)
 
@@ -398,6 +445,7 @@ def run_test(
         HardwareError: a device that cannot be opened or configured.
     """
     rig = _sim_rig(config) if simulate else _hardware_rig(config)
+    mcu_line = rig.mcu_line
     optics, speed = rig.optics, rig.speed_mm_min
     plan = exposure_for(config, optics, speed)
     calibration = Calibration.from_optics(optics.pixel_size_um, optics.magnification)
@@ -442,6 +490,7 @@ def run_test(
         if recorder is not None:
             recorder.close()
         camera.close()
+        _release_trigger_mcu(rig)
         if frame is not None:
             frame.close()
         raise
@@ -537,6 +586,7 @@ def run_test(
         if recorder is not None:
             recorder.close()
         camera.close()
+        _release_trigger_mcu(rig)
         if frame is not None:
             frame.close()
         raise
@@ -575,6 +625,7 @@ def run_test(
         if bar is not None:
             bar.close()
         camera.close()
+        _release_trigger_mcu(rig)
         if frame is not None:
             frame.close()
     for output in every_output:
@@ -601,6 +652,9 @@ def run_test(
     statistics = getattr(camera, "statistics", None)
     if callable(statistics):
         extra["camera_statistics"] = statistics()
+    if mcu_line is not None:
+        extra["mcu_triggers"] = len(mcu_line.events)
+        extra["mcu_triggers_without_time"] = mcu_line.unstamped
     for output in every_output:
         stats = getattr(output, "stats", None)
         if callable(stats):

@@ -18,7 +18,8 @@ re-program the devices with every frame.
 
 The pulse width is the camera's trigger input width: cameras triggered on the rising edge
 take their exposure time from their own setting, so the pulse only has to be long enough for
-the input's debounce (10 us by default, well above the few us camera inputs need).
+the input's debounce (60 us by default: well above the few us camera inputs need, and above
+the firmware's 50 us minimum).
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from dataclasses import dataclass
 
 from appliance.planner import ExposurePlan
 
-DEFAULT_PULSE_WIDTH_US = 10.0
+DEFAULT_PULSE_WIDTH_US = 60.0
 
 
 @dataclass(frozen=True)

@@ -149,7 +149,7 @@ class TriggerEvent:
     """A trigger pulse began.
 
     Attributes:
-        trigger_seq: its number since ARM (0 for the first).
+        trigger_seq: its number since ARM (1 for the first, as the firmware counts).
         tick: the firmware tick at which it began.
         position: the encoder position then (counts).
         host_time_ns: `tick` on the host clock by the clock fit when the event arrived (ns);

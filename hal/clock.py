@@ -51,6 +51,13 @@ class SimClock:
         with self._lock:
             return self._now
 
+    def at_wall_s(self, wall_s: float) -> float:
+        """The simulation time of a reading of the wall clock (REAL_TIME only), s: how an
+        event stamped on the host's monotonic clock is placed in the simulation."""
+        if self.pace is not Pace.REAL_TIME:
+            raise ValueError("only a real-time simulation clock follows the wall clock")
+        return wall_s - self._wall_start
+
     def now_ns(self) -> int:
         """Current simulation time, ns."""
         return int(round(self.now_s() * 1e9))

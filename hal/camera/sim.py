@@ -107,6 +107,13 @@ class SimCamera:
         self._trigger_line = trigger_line
         self._last_edge_s = -math.inf
 
+    def wire_trigger_input(self, line: TriggerLine | None) -> None:
+        """Connect the trigger input to `line` (while disarmed); None = edges only from
+        `external_edge`."""
+        if self._armed:
+            raise HardwareConfigError(f"{self.url}: cannot rewire the trigger input while armed")
+        self._trigger_line = line
+
     @property
     def sensor_size(self) -> tuple[int, int]:
         """Sensor (width, height), px."""

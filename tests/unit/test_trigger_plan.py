@@ -22,7 +22,7 @@ def test_period_triggers_round_the_planned_period_down_to_whole_ticks():
     assert plan.source == "period" and plan.encoder_divisor == 0
     assert plan.period_ticks == math.floor(exposure.frame_period_s * TICK_HZ)
     assert plan.frame_period_s <= exposure.frame_period_s
-    assert plan.pulse_width_ticks == 20 and plan.exposure_us == exposure.exposure_s * 1e6
+    assert plan.pulse_width_ticks == 120 and plan.exposure_us == exposure.exposure_s * 1e6
     assert plan.motion_per_frame_mm == pytest.approx(50.0 / 60.0 * plan.frame_period_s)
 
 

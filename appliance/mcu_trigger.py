@@ -1,0 +1,78 @@
+"""The trigger microcontroller driving the simulated camera: real firmware, simulated optics.
+
+A simulated test can have its exposures timed by the real trigger microcontroller
+(`[trigger] url`, a serial port or pyserial URL; in the tests the firmware under simavr): the
+trigger plan is sent to the firmware (`firmware_bridge.link.McuLink`), and every TRIGGER it
+reports becomes an edge on the simulated camera's trigger input, at the trigger's host time
+from the link's clock sync, expressed on the simulation clock. The simulated world must then
+run in real time (`[sim] realtime = true`), since the firmware's ticks follow wall time.
+
+`McuTriggerLine` is that camera input: `next_edge_s` waits for the next TRIGGER (the camera's
+fetch timeout bounds the wait) and keeps every event it consumed (`events`) so a test can
+match frames to triggers by sequence. A TRIGGER the link reports without a clock fit yet is
+skipped (its time is unknown) and counted.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+from appliance.trigger_plan import TriggerPlan
+from firmware_bridge.link import McuLink, TriggerEvent
+from firmware_bridge.messages import TriggerSource
+
+
+class McuTriggerLine:
+    """The simulated camera's trigger input, fed by a real microcontroller's TRIGGER events.
+
+    Args:
+        link: a connected link.
+        sim_s_of_host_ns: host monotonic ns -> simulation time, s.
+        wait_s: longest wait for one edge.
+    """
+
+    def __init__(
+        self,
+        link: McuLink,
+        sim_s_of_host_ns: Callable[[int], float],
+        *,
+        wait_s: float = 2.0,
+    ) -> None:
+        self.link = link
+        self.sim_s_of_host_ns = sim_s_of_host_ns
+        self.wait_s = wait_s
+        self.events: list[TriggerEvent] = []
+        self.unstamped = 0
+
+    def start(self, plan: TriggerPlan) -> None:
+        """Send the plan to the firmware and arm it."""
+        if plan.source == "encoder":
+            source, period, divisor = TriggerSource.ENCODER, 0, plan.encoder_divisor
+        else:
+            source, period, divisor = TriggerSource.PERIOD, plan.period_ticks, 1
+        self.link.configure(source, plan.pulse_width_ticks, period, divisor)
+        self.link.arm()
+
+    def stop(self) -> None:
+        """Disarm the firmware (errors of a link already gone are left to the caller)."""
+        self.link.disarm()
+
+    def next_edge_s(self, after_s: float) -> float | None:
+        """Simulation time of the next TRIGGER after `after_s`; None when none comes within
+        `wait_s`."""
+        deadline = time.monotonic() + self.wait_s
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return None
+            event = self.link.next_event(remaining)
+            if not isinstance(event, TriggerEvent):
+                continue
+            if event.host_time_ns is None:
+                self.unstamped += 1
+                continue
+            self.events.append(event)
+            edge = self.sim_s_of_host_ns(event.host_time_ns)
+            if edge > after_s:
+                return edge

@@ -1,0 +1,91 @@
+"""A simulated tensile test whose exposures are timed by the real trigger firmware under simavr.
+
+`extensometer run --sim` in real time with `[trigger] url` naming the simulated
+microcontroller's pty: the trigger plan goes to the firmware over the serial link, every
+TRIGGER it reports is an edge on the simulated camera's trigger input at the trigger's
+clock-synced host time, and the strain is served on Modbus while the test runs.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from firmware_bridge.simulator import SimulatedMcu
+from tests.system.firmware_peers import firmware_binaries
+from tests.system.modbus_peers import free_tcp_port, mbpoll_tcp, needs_mbpoll, printed_values
+
+EXTENSOMETER = str(Path(sys.executable).with_name("extensometer"))
+
+
+@pytest.fixture(scope="module")
+def binaries() -> dict[str, Path]:
+    return firmware_binaries()
+
+
+@needs_mbpoll
+def test_the_firmware_times_the_exposures_of_a_simulated_test(binaries, tmp_path):
+    port = free_tcp_port()
+    with SimulatedMcu(binaries["elf"], binaries["harness"], tmp_path / "mcu") as mcu:
+        config = tmp_path / "run.toml"
+        config.write_text(
+            f'[trigger]\nsource = "period"\nurl = "{mcu.port}"\n'
+            "[sim]\nrealtime = true\nsensor_width_px = 512\nsensor_height_px = 1024\n"
+            f'[modbus]\ntcp = "127.0.0.1:{port}"\n'
+        )
+        process = subprocess.Popen(
+            [
+                EXTENSOMETER,
+                "run",
+                "--sim",
+                "--config",
+                str(config),
+                "--until-strain",
+                "0.2",
+                "--json",
+                "--out",
+                str(tmp_path / "out"),
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        served = []
+        try:
+            while process.poll() is None and not served:
+                done_poll = mbpoll_tcp(port, "-1", "-r", "0", "-c", "2", "-t", "4:float", "-B")
+                status = mbpoll_tcp(port, "-1", "-r", "10", "-c", "1", "-t", "4")
+                strain = printed_values(done_poll.stdout).get(0)
+                bits = printed_values(status.stdout).get(10)
+                if strain and bits and int(bits) & 1 and float(strain) > 0.01:
+                    served.append(float(strain))
+                time.sleep(0.05)
+            stdout, stderr = process.communicate(timeout=180)
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.communicate()
+        edges = [ns for ns, _, level in mcu.edges() if level == 1]
+    assert process.returncode == 0, stderr
+    summary = json.loads(stdout)
+    assert served and 0.01 < served[0] < 0.25, "no valid strain was read over Modbus"
+    assert summary["exit_status"] == "completed" and summary["trigger_source"] == "period"
+    assert summary["mcu_triggers_without_time"] == 0
+    assert summary["mcu_triggers"] >= summary["frames_processed"] + 1
+    assert len(edges) >= summary["mcu_triggers"]
+    # The same test with the simulated microcontroller, as fast as possible, gives 1.4e-4.
+    assert summary["max_abs_strain_error"] <= 3e-4
+    rows = list(csv.DictReader((tmp_path / "out" / "strain.csv").open()))
+    assert len(rows) == summary["frames_processed"] >= 5
+    period_s = summary["trigger_period_ticks"] / 2e6
+    intervals = np.diff([float(r["time_s"]) for r in rows])
+    steps = np.round(intervals / period_s)
+    assert np.all(steps >= 1)
+    assert np.max(np.abs(intervals - steps * period_s)) < 1e-3
