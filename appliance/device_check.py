@@ -27,8 +27,8 @@ from typing import Any
 import numpy as np
 
 from appliance.config import Config, register_map_of
-from appliance.optics import Optics
-from hal.camera.base import Camera, CameraSettings, PixelFormat, Region, TriggerInfo, TriggerMode
+from appliance.runner import camera_region, configured_optics
+from hal.camera.base import Camera, CameraSettings, PixelFormat, TriggerInfo, TriggerMode
 from hal.errors import HardwareTimeout
 from hal.frame.base import FrameState, TensileFrame
 from hal.registry import camera_from_url, frame_from_url
@@ -55,13 +55,7 @@ def frame_for_check(config: Config, url: str) -> TensileFrame:
 def _sim_world(config: Config):
     from appliance.sim.world import PRESETS, SimWorld
 
-    preset = PRESETS[config.sim.material].optics
-    o = config.optics
-    optics = (
-        Optics(o.focal_length_mm, o.object_distance_mm, o.pixel_size_um)
-        if None not in (o.focal_length_mm, o.object_distance_mm, o.pixel_size_um)
-        else preset
-    )
+    optics = configured_optics(config, PRESETS[config.sim.material].optics)
     return SimWorld.from_config(config, optics)
 
 
@@ -106,15 +100,10 @@ def check_camera(
         raise ValueError(f"frames must be >= 2, got {frames}")
     c = config.camera
     exposure = exposure_us or c.exposure_us or 1000.0
-    region = (
-        Region(c.region_x_px or 0, c.region_y_px or 0, c.region_width_px, c.region_height_px)
-        if c.region_width_px is not None and c.region_height_px is not None
-        else None
-    )
     settings = CameraSettings(
         exposure_us=exposure,
         gain_db=c.gain_db,
-        region=region,
+        region=camera_region(config),
         pixel_format=PixelFormat(c.pixel_format),
     )
     arrivals: list[float] = []

@@ -85,7 +85,9 @@ class RunOutcome:
         return json.dumps(_json_ready(self.as_dict()), indent=2)
 
 
-def _optics(config: Config, fallback: Optics | None) -> Optics:
+def configured_optics(config: Config, fallback: Optics | None) -> Optics:
+    """The [optics] of a configuration; `fallback` (a simulated preset's) when the table
+    gives none of its keys. Raises InputError naming a missing or bad key."""
     o = config.optics
     given = (o.focal_length_mm, o.object_distance_mm, o.pixel_size_um)
     if all(v is None for v in given) and fallback is not None:
@@ -224,7 +226,7 @@ def _sim_rig(config: Config) -> _Rig:
             f"[frame] url: {config.frame.url or 'empty'}: the simulated test needs the "
             "simulated frame (sim://frame)"
         )
-    optics = _optics(config, PRESETS[config.sim.material].optics)
+    optics = configured_optics(config, PRESETS[config.sim.material].optics)
     world = SimWorld.from_config(config, optics)
     g = config.gauge
     centre = (
@@ -232,9 +234,8 @@ def _sim_rig(config: Config) -> _Rig:
         if g.centre_x_px is not None and g.centre_y_px is not None
         else world.specimen_centre_px
     )
-    mcu_line = None
     if config.trigger.url:
-        mcu_line = _connect_trigger_mcu(config, world)
+        _check_trigger_mcu_config(config)
     return _Rig(
         camera=world.camera,
         frame=world.frame,
@@ -245,8 +246,15 @@ def _sim_rig(config: Config) -> _Rig:
         commands=True,
         block_when_full=world.pace is Pace.FAST,
         world=world,
-        mcu_line=mcu_line,
     )
+
+
+def _close_devices(rig: _Rig) -> None:
+    """Close the camera, the trigger microcontroller's link and the controller of a test."""
+    rig.camera.close()
+    _release_trigger_mcu(rig)
+    if rig.frame is not None:
+        rig.frame.close()
 
 
 def _release_trigger_mcu(rig: _Rig) -> None:
@@ -264,15 +272,19 @@ def _release_trigger_mcu(rig: _Rig) -> None:
     rig.mcu_line = None
 
 
+def _check_trigger_mcu_config(config: Config) -> None:
+    """Refuse a `[trigger] url` the simulated test cannot use with it."""
+    if config.trigger.source == "internal":
+        raise InputError("[trigger] url: set, but [trigger] source is internal")
+    if not config.sim.realtime:
+        raise InputError("[trigger] url: the microcontroller runs in real time: set [sim] realtime")
+
+
 def _connect_trigger_mcu(config: Config, world: Any) -> Any:
     """The real trigger microcontroller at `[trigger] url`, wired to the simulated camera."""
     from appliance.mcu_trigger import McuTriggerLine
     from firmware_bridge.link import FirmwareError, McuLink
 
-    if config.trigger.source == "internal":
-        raise InputError("[trigger] url: set, but [trigger] source is internal")
-    if not config.sim.realtime:
-        raise InputError("[trigger] url: the microcontroller runs in real time: set [sim] realtime")
     try:
         link = McuLink(config.trigger.url)
         try:
@@ -299,7 +311,7 @@ def _hardware_rig(config: Config) -> _Rig:
             f"[trigger] source: {config.trigger.source!r} needs the trigger microcontroller, "
             "which this version drives in the simulated test only"
         )
-    optics = _optics(config, None)
+    optics = configured_optics(config, None)
     if config.gauge.length_mm is None:
         raise InputError("[gauge] length_mm: required with a real specimen")
     speed = config.run.speed_mm_min
@@ -348,6 +360,8 @@ def _prepare_triggers(
             "version drives in the simulated test only"
         )
     controller = rig.world.trigger
+    if config.trigger.url:
+        rig.mcu_line = _connect_trigger_mcu(config, rig.world)
     tick_hz = rig.mcu_line.link.firmware.tick_hz if rig.mcu_line else controller.tick_hz
     try:
         triggers = plan_triggers(
@@ -376,12 +390,13 @@ def check_devices(config: Config, *, simulate: bool) -> None:
         HardwareError: a backend refusing its URL.
     """
     if simulate:
-        _release_trigger_mcu(_sim_rig(config))
+        _sim_rig(config)
     else:
         _hardware_rig(config)
 
 
-def _region(config: Config) -> Region | None:
+def camera_region(config: Config) -> Region | None:
+    """The sensor region of [camera] region_*_px; None = the full sensor."""
     c = config.camera
     if c.region_width_px is None:
         return None
@@ -445,7 +460,6 @@ def run_test(
         HardwareError: a device that cannot be opened or configured.
     """
     rig = _sim_rig(config) if simulate else _hardware_rig(config)
-    mcu_line = rig.mcu_line
     optics, speed = rig.optics, rig.speed_mm_min
     plan = exposure_for(config, optics, speed)
     calibration = Calibration.from_optics(optics.pixel_size_um, optics.magnification)
@@ -481,18 +495,16 @@ def run_test(
             CameraSettings(
                 exposure_us=plan.exposure_s * 1e6,
                 gain_db=config.camera.gain_db,
-                region=_region(config),
+                region=camera_region(config),
                 pixel_format=PixelFormat(config.camera.pixel_format),
             )
         )
         triggers = _prepare_triggers(config, rig, plan, camera)
+        mcu_line = rig.mcu_line
     except BaseException:
         if recorder is not None:
             recorder.close()
-        camera.close()
-        _release_trigger_mcu(rig)
-        if frame is not None:
-            frame.close()
+        _close_devices(rig)
         raise
 
     extra = {
@@ -585,10 +597,7 @@ def run_test(
     except BaseException:
         if recorder is not None:
             recorder.close()
-        camera.close()
-        _release_trigger_mcu(rig)
-        if frame is not None:
-            frame.close()
+        _close_devices(rig)
         raise
     sinks.extend(every_output)
     bar = _Progress(progress) if progress is not None else None
@@ -624,10 +633,7 @@ def run_test(
             writer.close()
         if bar is not None:
             bar.close()
-        camera.close()
-        _release_trigger_mcu(rig)
-        if frame is not None:
-            frame.close()
+        _close_devices(rig)
     for output in every_output:
         try:
             output.end(result)
