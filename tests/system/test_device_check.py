@@ -1,0 +1,83 @@
+"""`extensometer camera-check` and `frame-check` as an installer runs them, on real peers:
+Aravis' fake GigE Vision camera and a pymodbus frame controller, both on loopback."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.system.aravis_peers import FakeGvCamera, needs_gige
+from tests.system.frame_controller_peers import ControllerServer, SimulatedController
+from tests.system.modbus_peers import free_tcp_port
+
+EXTENSOMETER = str(Path(sys.executable).with_name("extensometer"))
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([EXTENSOMETER, *args], capture_output=True, text=True, timeout=120)
+
+
+@needs_gige
+def test_camera_check_reports_what_the_camera_delivers(tmp_path):
+    config = tmp_path / "camera.toml"
+    config.write_text(
+        "[camera]\nregion_x_px = 0\nregion_y_px = 0\nregion_width_px = 256\n"
+        "region_height_px = 128\n"
+    )
+    with FakeGvCamera("127.0.0.5", "GV05") as camera:
+        done = _cli(
+            "camera-check",
+            "--camera",
+            camera.url,
+            "--config",
+            str(config),
+            "--frames",
+            "20",
+            "--rate",
+            "50",
+            "--json",
+        )
+        text = _cli("camera-check", "--camera", camera.url, "--frames", "5")
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    for key in ("frames", "width", "height", "pixel_format", "fps", "lost"):
+        assert key in report
+    assert (report["frames"], report["width"], report["height"]) == (20, 256, 128)
+    assert report["pixel_format"] == "Mono8" and report["lost"] == 0
+    assert report["timestamps_increasing"] and 25 < report["device_fps"] < 100
+    assert report["statistics"]["frames_delivered"] >= 20
+    assert text.returncode == 0 and "frames             5 (0 lost" in text.stdout
+
+
+@needs_gige
+def test_camera_check_names_an_absent_camera_and_a_bad_option():
+    absent = _cli("camera-check", "--camera", "aravis://127.0.0.9", "--frames", "2")
+    assert absent.returncode == 1 and absent.stderr.count("\n") == 1
+    assert absent.stderr.startswith("extensometer: camera-check: aravis://127.0.0.9: ")
+    bad = _cli("camera-check", "--camera", "aravis://127.0.0.9?buffers=x")
+    assert bad.returncode == 2 and "option buffers='x'" in bad.stderr
+    assert bad.stderr.count("\n") == 1
+
+
+def test_frame_check_reads_the_controller_state_and_names_a_dead_one():
+    controller = SimulatedController()
+    port = free_tcp_port()
+    with ControllerServer(controller) as server:
+        server.serve_tcp(port)
+        done = _cli("frame-check", "--frame", f"modbus-tcp://127.0.0.1:{port}", "--json")
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    state = controller.machine.state_at(controller.machine.clock())
+    assert report["reads"] == 50 and report["rate_hz"] > 0
+    assert report["state"]["crosshead_mm"] == pytest.approx(state["crosshead_mm"], rel=1e-6)
+    assert report["state"]["force_n"] == pytest.approx(state["force_n"], rel=1e-6)
+    assert report["latency_ms"]["p50"] <= report["latency_ms"]["p99"]
+    dead = _cli("frame-check", "--frame", f"modbus-tcp://127.0.0.1:{port}")
+    assert dead.returncode == 1 and dead.stderr.count("\n") == 1
+    assert f"modbus-tcp://127.0.0.1:{port}" in dead.stderr
+    bad = _cli("frame-check", "--frame", "modbus-tcp://127.0.0.1:99999")
+    assert bad.returncode == 2 and bad.stderr.startswith("extensometer: error: frame-check: ")
