@@ -97,9 +97,16 @@ class TriggerConfig:
     serial port (a device path or pyserial URL); empty = the simulated one. In this version
     the real microcontroller times the simulated camera in a real-time simulated test
     (`appliance.mcu_trigger`).
+
+    While the test runs, exposure and trigger spacing follow the crosshead speed the
+    controller reports (`appliance.exposure_pacing`): a speed more than `replan_hysteresis`
+    (relative) above the one planned for is re-planned at once, one below it after
+    `replan_slow_down_s` of slower readings; 0 = keep the plan of the test speed.
     """
 
     source: str = field(default="internal", metadata={"choices": ("internal", "period", "encoder")})
+    replan_hysteresis: float = field(default=0.1, metadata=_range(0.0, 10.0))
+    replan_slow_down_s: float = field(default=2.0, metadata=_range(0.0, 3600.0))
     pulse_width_us: float = field(default=60.0, metadata=_range(50.0, 100000.0))
     url: str = ""
     encoder_counts_per_mm: float = field(default=1000.0, metadata=_range(1.0, 1e7))
@@ -175,6 +182,9 @@ class SimConfig:
 
     `camera_hang_after_s` > 0 makes the simulated camera hang that long after the start of a
     test, as a hung driver would (fault injection for the watchdog); 0 = never.
+    `speed_change_after_s` > 0 makes the simulated controller change the crosshead speed to
+    `speed_change_mm_min` that long after the start, as a two-speed test program does (the
+    appliance re-plans exposure and triggers from the speed it reads); 0 = one speed.
     """
 
     material: str = field(default="rubber", metadata={"choices": ("rubber", "metal")})
@@ -185,6 +195,8 @@ class SimConfig:
     read_noise_grey: float = field(default=0.5, metadata=_range(0.0, 50.0))
     electrons_per_grey: float = field(default=40.0, metadata=_range(0.0, 1e6))
     camera_hang_after_s: float = field(default=0.0, metadata=_range(0.0, 1e6))
+    speed_change_after_s: float = field(default=0.0, metadata=_range(0.0, 1e6))
+    speed_change_mm_min: float = field(default=0.0, metadata=_range(0.0, 10000.0))
 
 
 @dataclass(frozen=True)

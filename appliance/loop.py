@@ -140,6 +140,9 @@ class MeasurementLoop:
             faults; 0 = the first connection loss or timeout is a fault.
         device_listeners: called with every `DeviceEvent` (on the acquisition thread; fast,
             non-blocking work only).
+        machine_listeners: called with the controller reading of every frame (None when
+            there is none), on the acquisition thread before the frame is queued (the
+            exposure pacing, `appliance.exposure_pacing`).
         wall: wall clock, s (injected for tests).
     """
 
@@ -159,6 +162,7 @@ class MeasurementLoop:
         break_detection: BreakDetection | None = None,
         camera_outage_timeout_s: float = 0.0,
         device_listeners: Sequence[Callable[[DeviceEvent], None]] = (),
+        machine_listeners: Sequence[Callable[[FrameState | None], None]] = (),
         wall: Callable[[], float] = time.perf_counter,
     ) -> None:
         self.camera = camera
@@ -173,6 +177,7 @@ class MeasurementLoop:
         self.break_detection = break_detection or BreakDetection()
         self.camera_outage_timeout_s = camera_outage_timeout_s
         self.device_listeners = list(device_listeners)
+        self.machine_listeners = list(machine_listeners)
         self._wall = wall
         self._outage_since: float | None = None
         self._controller_lost = False
@@ -339,6 +344,8 @@ class MeasurementLoop:
                 elif self._time_offset_ns:
                     frame = self._rebased(frame, self._time_offset_ns)
                 machine = self._read_machine()
+                for listener in self.machine_listeners:
+                    listener(machine)
                 gap = frame.frame_id - self._last_frame_id - 1
                 self._last_frame_id = frame.frame_id
                 self._last_timestamp_ns = frame.timestamp_ns

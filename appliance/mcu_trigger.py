@@ -19,8 +19,9 @@ import time
 from collections.abc import Callable
 
 from appliance.trigger_plan import TriggerPlan
-from firmware_bridge.link import McuLink, TriggerEvent
+from firmware_bridge.link import FirmwareError, McuLink, TriggerEvent
 from firmware_bridge.messages import TriggerSource
+from hal.errors import HardwareFault
 
 
 class McuTriggerLine:
@@ -53,6 +54,18 @@ class McuTriggerLine:
             source, period, divisor = TriggerSource.PERIOD, plan.period_ticks, 1
         self.link.configure(source, plan.pulse_width_ticks, period, divisor)
         self.link.arm()
+
+    def retime(self, plan: TriggerPlan) -> None:
+        """Change the armed trigger's period or encoder divisor (the firmware's RETIME): the
+        sequence numbers continue. Raises HardwareFault when the firmware refuses it or the
+        link fails."""
+        try:
+            if plan.source == "encoder":
+                self.link.retime(encoder_divisor=plan.encoder_divisor)
+            else:
+                self.link.retime(period_ticks=plan.period_ticks)
+        except FirmwareError as exc:
+            raise HardwareFault(f"{self.link.url}: RETIME: {exc}") from None
 
     def stop(self) -> None:
         """Disarm the firmware (errors of a link already gone are left to the caller)."""

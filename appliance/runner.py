@@ -32,6 +32,7 @@ import numpy as np
 from appliance import __version__
 from appliance.config import Config, register_map_of
 from appliance.errors import InputError
+from appliance.exposure_pacing import ExposurePacer, Replan
 from appliance.gauges import Calibration, StrainGauges, StrainGaugesLayout, place_marks
 from appliance.loop import DeviceEvent, MeasurementLoop
 from appliance.measurement import StopCriteria, StrainSample
@@ -44,7 +45,7 @@ from appliance.run_state import RunStateMachine, Transition
 from appliance.strain_file import StrainCsvWriter
 from appliance.summary import RunSummary, SampleRecord
 from appliance.tracking import MarkTracker, TrackerSettings
-from appliance.trigger_plan import TriggerPlan, plan_triggers
+from appliance.trigger_plan import TriggerPlan, TriggerReplanner, plan_triggers
 from hal.camera.base import (
     Camera,
     CameraSettings,
@@ -362,7 +363,7 @@ def _prepare_triggers(
     controller = rig.world.trigger
     if config.trigger.url:
         rig.mcu_line = _connect_trigger_mcu(config, rig.world)
-    tick_hz = rig.mcu_line.link.firmware.tick_hz if rig.mcu_line else controller.tick_hz
+    tick_hz = _trigger_tick_hz(rig)
     try:
         triggers = plan_triggers(
             plan,
@@ -379,6 +380,76 @@ def _prepare_triggers(
     controller.configure(triggers)
     controller.arm(rig.world.clock.now_s())
     return triggers
+
+
+def _trigger_tick_hz(rig: _Rig) -> float:
+    """Tick rate of the trigger microcontroller in use (real or simulated)."""
+    if rig.mcu_line is not None:
+        return float(rig.mcu_line.link.firmware.tick_hz)
+    return float(rig.world.trigger.tick_hz)
+
+
+def _exposure_pacer(
+    config: Config,
+    rig: _Rig,
+    camera: Camera,
+    exposure_us: float,
+    recorder: McapRecorder | None,
+    progress: TextIO | None,
+) -> ExposurePacer | None:
+    """The pacing of exposure and triggers by the controller's speed; None when it is off
+    (`[trigger] replan_hysteresis = 0`) or there is no controller to read the speed from."""
+    if not config.trigger.replan_hysteresis or rig.frame is None:
+        return None
+    source = config.trigger.source
+    timer = None
+    tick_hz = 1e6
+    if source != "internal":
+        timer = rig.mcu_line if rig.mcu_line is not None else rig.world.trigger
+        tick_hz = _trigger_tick_hz(rig)
+
+    def make_plan(speed_mm_min: float) -> TriggerPlan:
+        try:
+            exposure = exposure_for(config, rig.optics, speed_mm_min)
+        except InputError as exc:
+            raise ValueError(str(exc)) from None
+        if source == "internal":
+            return TriggerPlan(
+                "internal",
+                speed_mm_min,
+                exposure.exposure_s * 1e6,
+                0,
+                0,
+                0,
+                exposure.frame_period_s,
+                speed_mm_min / 60.0 * exposure.frame_period_s,
+            )
+        return plan_triggers(
+            exposure,
+            tick_hz=tick_hz,
+            counts_per_mm=config.trigger.encoder_counts_per_mm if source == "encoder" else None,
+            pulse_width_us=config.trigger.pulse_width_us,
+        )
+
+    def tell(replan: Replan) -> None:
+        if recorder is not None:
+            recorder.log("WARNING" if replan.error else "INFO", replan.describe())
+        if progress is not None:
+            progress.write(f"\n  {replan.describe()}\n")
+            progress.flush()
+
+    return ExposurePacer(
+        make_plan,
+        TriggerReplanner(
+            rig.speed_mm_min,
+            hysteresis=config.trigger.replan_hysteresis,
+            slow_down_after_s=config.trigger.replan_slow_down_s,
+        ),
+        camera,
+        timer,
+        exposure_us=exposure_us,
+        on_replan=tell,
+    )
 
 
 def check_devices(config: Config, *, simulate: bool) -> None:
@@ -501,6 +572,7 @@ def run_test(
         )
         triggers = _prepare_triggers(config, rig, plan, camera)
         mcu_line = rig.mcu_line
+        pacer = _exposure_pacer(config, rig, camera, in_force.exposure_us, recorder, progress)
     except BaseException:
         if recorder is not None:
             recorder.close()
@@ -620,6 +692,7 @@ def run_test(
         start_speed_mm_min=speed if rig.commands else None,
         camera_outage_timeout_s=0.0 if simulate else config.camera.outage_timeout_s,
         device_listeners=device_events,
+        machine_listeners=[pacer.follow] if pacer is not None else [],
     )
     if on_loop is not None:
         on_loop(loop)
@@ -658,6 +731,9 @@ def run_test(
     statistics = getattr(camera, "statistics", None)
     if callable(statistics):
         extra["camera_statistics"] = statistics()
+    if pacer is not None:
+        extra["replans"] = [dataclasses.asdict(replan) for replan in pacer.replans]
+        extra["replan_failures"] = pacer.failures
     if mcu_line is not None:
         extra["mcu_triggers"] = len(mcu_line.events)
         extra["mcu_triggers_without_time"] = mcu_line.unstamped

@@ -13,8 +13,8 @@ capture range. The trigger microcontroller fires the camera either
 `plan_triggers` computes one `TriggerPlan` (source, pulse width, period in ticks or encoder
 divisor, and the camera exposure); `TriggerReplanner` decides, from the controller's speed
 readings, when a new plan is due: when the speed has moved by more than a relative
-hysteresis from the speed the plan in force was made for, so a noisy speed reading does not
-re-program the devices with every frame.
+hysteresis from the speed the plan in force was made for (so a noisy speed reading does not
+re-program the devices with every frame), at once when faster, after a dwell when slower.
 
 The pulse width is the camera's trigger input width: cameras triggered on the rising edge
 take their exposure time from their own setting, so the pulse only has to be long enough for
@@ -130,31 +130,69 @@ def plan_triggers(
 
 
 class TriggerReplanner:
-    """Decides when the speed has changed enough for a new trigger plan.
+    """Decides, from the controller's speed readings, when a new trigger plan is due.
+
+    Being planned for a speed slower than the crosshead's is the dangerous side (blur and
+    frame-to-frame motion beyond budget, tracking lost), being planned for a faster one only
+    costs light and frames; so the decision is asymmetric:
+
+    * faster: a speed more than `hysteresis` above the speed planned for is due at once;
+    * slower: a speed more than `hysteresis` below it is due only once every reading for
+      `slow_down_after_s` has been below it; the plan is then made for the fastest of those
+      readings (a ramp or a noisy reading does not slow the frames down);
+    * standing still: a speed below `min_speed_mm_min` never re-plans. The plan in force
+      stays, so a crosshead that restarts is caught at the frame rate it had (a stop or a
+      hold at the end of a test does not slow the frames down to one a second).
 
     Args:
-        hysteresis: relative speed change that calls for a new plan (0.1 = 10 %).
-        min_speed_mm_min: speeds below this count as standing still (one plan for all).
+        planned_for: the speed the plan in force was made for, mm/min (the test speed).
+        hysteresis: relative speed change that calls for a new plan (0.1 = 10 %; > 0).
+        slow_down_after_s: how long the speed must stay below the planned one, s (>= 0).
+        min_speed_mm_min: speeds below this count as standing still.
     """
 
-    def __init__(self, *, hysteresis: float = 0.1, min_speed_mm_min: float = 0.01) -> None:
+    def __init__(
+        self,
+        planned_for: float,
+        *,
+        hysteresis: float = 0.1,
+        slow_down_after_s: float = 2.0,
+        min_speed_mm_min: float = 0.01,
+    ) -> None:
         if not hysteresis > 0:
             raise ValueError(f"hysteresis must be > 0, got {hysteresis}")
+        if not slow_down_after_s >= 0:
+            raise ValueError(f"slow_down_after_s must be >= 0, got {slow_down_after_s}")
+        self.planned_for = abs(planned_for)
         self.hysteresis = hysteresis
+        self.slow_down_after_s = slow_down_after_s
         self.min_speed_mm_min = min_speed_mm_min
-        self.planned_for: float | None = None
+        self._slower_since: float | None = None
+        self._fastest_slower = 0.0
 
-    def due(self, speed_mm_min: float) -> bool:
-        """Whether a plan made for the last accepted speed no longer fits `speed_mm_min`;
-        when it is due, `speed_mm_min` becomes the speed planned for."""
-        speed = abs(speed_mm_min) if abs(speed_mm_min) >= self.min_speed_mm_min else 0.0
+    def due(self, speed_mm_min: float, t_s: float) -> float | None:
+        """The speed to plan for now, given a reading of `speed_mm_min` at time `t_s` (s, any
+        monotonic clock); None while the plan in force still fits. A returned speed becomes
+        the speed planned for."""
+        speed = abs(speed_mm_min)
+        if speed < self.min_speed_mm_min or not math.isfinite(speed):
+            self._slower_since = None
+            return None
         planned = self.planned_for
-        if planned is None:
-            changed = True
-        elif planned == 0.0:
-            changed = speed > 0.0
+        if speed > planned * (1.0 + self.hysteresis) or planned < self.min_speed_mm_min:
+            return self._accept(speed)
+        if speed >= planned * (1.0 - self.hysteresis):
+            self._slower_since = None
+            return None
+        if self._slower_since is None:
+            self._slower_since, self._fastest_slower = t_s, speed
         else:
-            changed = abs(speed - planned) > self.hysteresis * planned
-        if changed:
-            self.planned_for = speed
-        return changed
+            self._fastest_slower = max(self._fastest_slower, speed)
+        if t_s - self._slower_since >= self.slow_down_after_s:
+            return self._accept(self._fastest_slower)
+        return None
+
+    def _accept(self, speed: float) -> float:
+        self.planned_for = speed
+        self._slower_since = None
+        return speed

@@ -1,7 +1,8 @@
 """Crosshead kinematics of a simulated tensile frame: speed commands with acceleration limits.
 
 The crosshead position is measured from its start, positive when the grips open (tension).
-Commands arrive in time order, each with its time stamp: start at a speed, stop, return to
+Commands arrive in time order, each with its time stamp: start at a speed (optionally with a
+speed program that follows, as a controller's test program changes speed), stop, return to
 the start position. Each replaces whatever motion the previous command had planned from its
 time on. Between commands the motion is a sequence of constant-acceleration segments
 (trapezoidal speed profiles with acceleration magnitude `max_acceleration_mm_s2`), so
@@ -15,7 +16,7 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -175,20 +176,42 @@ class Crosshead:
         """Whether the crosshead is commanded to move at time t_s."""
         return bool(self._plan.running_at(t_s))
 
-    def start(self, speed_mm_min: float, t_s: float) -> MotionPlan:
+    def start(
+        self,
+        speed_mm_min: float,
+        t_s: float,
+        speed_changes: Sequence[tuple[float, float]] = (),
+    ) -> MotionPlan:
         """From t_s, ramp to `speed_mm_min` (signed; positive = opening) and hold it.
+
+        Args:
+            speed_mm_min: the speed to ramp to, mm/min.
+            t_s: the command's time, s.
+            speed_changes: a speed program that follows the start: (seconds after t_s,
+                speed in mm/min), in increasing time, each ramping to its speed as a start
+                would. The next command (a stop, say) replaces what is left of it.
 
         Returns:
             The new plan.
         """
-        if not math.isfinite(speed_mm_min):
-            raise ValueError(f"speed_mm_min must be finite, got {speed_mm_min}")
-        target = speed_mm_min / 60.0
-        return self._command(t_s, lambda x, v: self._ramp(x, v, target), target != 0.0)
+        steps = [(0.0, speed_mm_min), *speed_changes]
+        for index, (after_s, speed) in enumerate(steps):
+            if not math.isfinite(speed):
+                raise ValueError(f"speed_mm_min must be finite, got {speed}")
+            if index and not (math.isfinite(after_s) and after_s > steps[index - 1][0]):
+                raise ValueError(f"speed change times must increase, got {after_s} s")
+
+        def ramp_to(target: float) -> Callable[[float, float], _Moves]:
+            return lambda x, v: self._ramp(x, v, target)
+
+        return self._command(
+            t_s,
+            [(t_s + after_s, ramp_to(speed / 60.0), speed != 0.0) for after_s, speed in steps],
+        )
 
     def stop(self, t_s: float) -> MotionPlan:
         """From t_s, decelerate to rest. Returns the new plan."""
-        return self._command(t_s, lambda x, v: self._ramp(x, v, 0.0), False)
+        return self._command(t_s, [(t_s, lambda x, v: self._ramp(x, v, 0.0), False)])
 
     def return_to_start(self, speed_mm_min: float, t_s: float) -> MotionPlan:
         """From t_s, drive to position 0 at up to |speed_mm_min| and stop there.
@@ -199,7 +222,7 @@ class Crosshead:
         speed = abs(speed_mm_min) / 60.0
         if not (math.isfinite(speed) and speed > 0):
             raise ValueError(f"return speed must be non-zero and finite, got {speed_mm_min}")
-        return self._command(t_s, lambda x, v: self._move_to(x, v, 0.0, speed), True)
+        return self._command(t_s, [(t_s, lambda x, v: self._move_to(x, v, 0.0, speed), True)])
 
     def _ramp(self, position: float, speed: float, target: float) -> _Moves:
         if speed == target:
@@ -240,8 +263,12 @@ class Crosshead:
         return _Moves(phases, 0.0, target)
 
     def _command(
-        self, t_s: float, planner: Callable[[float, float], _Moves], commanded: bool
+        self,
+        t_s: float,
+        steps: Sequence[tuple[float, Callable[[float, float], _Moves], bool]],
     ) -> MotionPlan:
+        """Apply a command at t_s: its steps (time, planner, commanded), in time order, each
+        replacing the motion planned from its time on; one new plan for readers."""
         t_s = float(t_s)
         if not math.isfinite(t_s):
             raise ValueError(f"command time must be finite, got {t_s}")
@@ -251,38 +278,47 @@ class Crosshead:
                     f"command at {t_s} s precedes the previous command at {self._last_command_s} s"
                 )
             plan = self._plan
-            position = float(plan.position_mm_at(t_s))
-            speed = float(plan.speed_mm_s_at(t_s))
-            keep = plan.start_s < t_s
-            starts = list(plan.start_s[keep])
-            positions = list(plan.position_mm[keep])
-            speeds = list(plan.speed_mm_s[keep])
-            accelerations = list(plan.acceleration_mm_s2[keep])
-            flags = list(plan.commanded[keep])
-            moves = planner(position, speed)
-            time = t_s
-            for duration, acceleration in moves.phases:
-                if duration <= 0.0:
-                    continue
-                starts.append(time)
-                positions.append(position)
-                speeds.append(speed)
-                accelerations.append(acceleration)
-                flags.append(commanded)
-                position += speed * duration + 0.5 * acceleration * duration * duration
-                speed += acceleration * duration
-                time += duration
-            starts.append(time)
-            positions.append(position if moves.end_position_mm is None else moves.end_position_mm)
-            speeds.append(moves.end_speed_mm_s)
-            accelerations.append(0.0)
-            flags.append(commanded and moves.end_speed_mm_s != 0.0)
-            self._plan = MotionPlan(
-                np.array(starts, np.float64),
-                np.array(positions, np.float64),
-                np.array(speeds, np.float64),
-                np.array(accelerations, np.float64),
-                np.array(flags, np.bool_),
-            )
+            for step_s, planner, commanded in steps:
+                plan = _replanned(plan, float(step_s), planner, commanded)
+            self._plan = plan
             self._last_command_s = t_s
             return self._plan
+
+
+def _replanned(
+    plan: MotionPlan, t_s: float, planner: Callable[[float, float], _Moves], commanded: bool
+) -> MotionPlan:
+    """`plan` up to t_s, then the moves `planner` gives from the position and speed there."""
+    position = float(plan.position_mm_at(t_s))
+    speed = float(plan.speed_mm_s_at(t_s))
+    keep = plan.start_s < t_s
+    starts = list(plan.start_s[keep])
+    positions = list(plan.position_mm[keep])
+    speeds = list(plan.speed_mm_s[keep])
+    accelerations = list(plan.acceleration_mm_s2[keep])
+    flags = list(plan.commanded[keep])
+    moves = planner(position, speed)
+    time = t_s
+    for duration, acceleration in moves.phases:
+        if duration <= 0.0:
+            continue
+        starts.append(time)
+        positions.append(position)
+        speeds.append(speed)
+        accelerations.append(acceleration)
+        flags.append(commanded)
+        position += speed * duration + 0.5 * acceleration * duration * duration
+        speed += acceleration * duration
+        time += duration
+    starts.append(time)
+    positions.append(position if moves.end_position_mm is None else moves.end_position_mm)
+    speeds.append(moves.end_speed_mm_s)
+    accelerations.append(0.0)
+    flags.append(commanded and moves.end_speed_mm_s != 0.0)
+    return MotionPlan(
+        np.array(starts, np.float64),
+        np.array(positions, np.float64),
+        np.array(speeds, np.float64),
+        np.array(accelerations, np.float64),
+        np.array(flags, np.bool_),
+    )

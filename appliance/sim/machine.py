@@ -44,6 +44,8 @@ class SimMachine:
         crosshead: the crosshead kinematics (a fresh `Crosshead()` by default).
         encoder_counts_per_mm: crosshead encoder resolution, counts/mm; None for a
             controller without an encoder reading.
+        speed_changes: the controller's speed program after every start: (seconds after
+            the start, speed in mm/min), in increasing time (see `Crosshead.start`).
     """
 
     def __init__(
@@ -52,12 +54,14 @@ class SimMachine:
         crosshead: Crosshead | None = None,
         *,
         encoder_counts_per_mm: float | None = 1000.0,
+        speed_changes: tuple[tuple[float, float], ...] = (),
     ) -> None:
         if encoder_counts_per_mm is not None and not encoder_counts_per_mm > 0:
             raise ValueError(f"encoder_counts_per_mm must be positive, got {encoder_counts_per_mm}")
         self.bar = bar
         self.crosshead = crosshead if crosshead is not None else Crosshead()
         self.encoder_counts_per_mm = encoder_counts_per_mm
+        self.speed_changes = speed_changes
         self._lock = threading.Lock()
         self._snapshot = self._snapshot_of(self.crosshead.plan)
 
@@ -115,9 +119,12 @@ class SimMachine:
         )
 
     def start(self, speed_mm_min: float, t_s: float) -> None:
-        """Start the crosshead at `speed_mm_min` (positive = opening) at time t_s."""
+        """Start the crosshead at `speed_mm_min` (positive = opening) at time t_s, followed
+        by the speed program."""
         with self._lock:
-            self._snapshot = self._snapshot_of(self.crosshead.start(speed_mm_min, t_s))
+            self._snapshot = self._snapshot_of(
+                self.crosshead.start(speed_mm_min, t_s, self.speed_changes)
+            )
 
     def stop(self, t_s: float) -> None:
         """Stop the crosshead (decelerating) at time t_s."""

@@ -12,9 +12,11 @@ the next rising edge:
   last edge, found exactly from the crosshead's motion plan.
 
 Every edge is kept as a `SimTriggerEvent` (sequence number from 1, time, encoder position),
-as the firmware reports TRIGGER events. What it does not model: pulse width (the simulated
-camera takes the rising edge), jitter (edges are exact), a dead-man, or reverse motion (the
-encoder source follows forward travel only, like the firmware).
+as the firmware reports TRIGGER events. `retime` changes the period or divisor of the armed
+trigger from the last edge on, as the firmware's RETIME message does. What it does not
+model: pulse width (the simulated camera takes the rising edge), jitter (edges are exact), a
+dead-man, or reverse motion (the encoder source follows forward travel only, like the
+firmware).
 """
 
 from __future__ import annotations
@@ -50,7 +52,7 @@ class SimTriggerController:
         self.events: list[SimTriggerEvent] = []
         self._plan: TriggerPlan | None = None
         self._armed_at_s: float | None = None
-        self._base_counts = 0
+        self._base: tuple[int, float, int] = (0, 0.0, 0)
         self._lock = threading.Lock()
 
     def configure(self, plan: TriggerPlan) -> None:
@@ -67,13 +69,29 @@ class SimTriggerController:
             if self._plan is None:
                 raise ValueError("arm before configure")
             self._armed_at_s = t_s
-            self._base_counts = self._counts_at(t_s)
+            self._base = (0, t_s, self._counts_at(t_s))
             self.events = []
 
     def disarm(self) -> None:
         """Stop triggering."""
         with self._lock:
             self._armed_at_s = None
+
+    def retime(self, plan: TriggerPlan) -> None:
+        """Change the spacing of the armed trigger, as the firmware's RETIME does: edges
+        already fired stay, the next ones follow `plan`'s period (from the last edge) or
+        divisor (from the last edge's encoder position). Sequence numbers continue. Raises
+        ValueError for a plan of another source, or when disarmed."""
+        with self._lock:
+            current = self._plan
+            if current is None or self._armed_at_s is None:
+                raise ValueError("retime while disarmed")
+            if plan.source != current.source:
+                raise ValueError(f"retime from {current.source} to {plan.source} triggering")
+            if self.events:
+                last = self.events[-1]
+                self._base = (len(self.events) - 1, last.time_s, last.position_counts)
+            self._plan = plan
 
     def next_edge_s(self, after_s: float) -> float | None:
         """The first edge after `after_s` (the camera's trigger input asks). Period edges the
@@ -84,12 +102,13 @@ class SimTriggerController:
             if plan is None or armed is None:
                 return None
             tick_s = 1.0 / self.tick_hz
+            base_index, base_s, base_counts = self._base
             while True:
                 n = len(self.events)
                 if plan.source == "period":
-                    edge = armed + n * plan.period_ticks * tick_s
+                    edge = base_s + (n - base_index) * plan.period_ticks * tick_s
                 else:
-                    target = self._base_counts + n * plan.encoder_divisor
+                    target = base_counts + (n - base_index) * plan.encoder_divisor
                     edge = self._time_at_counts(target, max(armed, after_s + tick_s))
                     if edge is None:
                         return None

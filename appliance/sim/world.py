@@ -106,6 +106,8 @@ class SimWorld:
         camera_hang_after_s: simulation time from which the camera hangs (fault injection,
             see `hal.camera.sim.SimCamera`); None = never.
         encoder_counts_per_mm: the crosshead encoder's resolution.
+        speed_changes: the simulated controller's speed program after the start: (seconds
+            after the start, mm/min), in increasing time.
 
     The camera's trigger input is wired to `trigger`, the simulated trigger microcontroller
     (`appliance.sim.trigger`), which the test configures and arms for EXTERNAL triggering.
@@ -125,6 +127,7 @@ class SimWorld:
         electrons_per_grey: float = 40.0,
         camera_hang_after_s: float | None = None,
         encoder_counts_per_mm: float = 1000.0,
+        speed_changes: tuple[tuple[float, float], ...] = (),
     ) -> None:
         self.preset = preset
         self.specimen = preset.specimen()
@@ -135,7 +138,10 @@ class SimWorld:
         self.clock = SimClock(pace)
         self.bar = BarModel(self.specimen, self.material)
         self.machine = SimMachine(
-            self.bar, Crosshead(), encoder_counts_per_mm=encoder_counts_per_mm
+            self.bar,
+            Crosshead(),
+            encoder_counts_per_mm=encoder_counts_per_mm,
+            speed_changes=speed_changes,
         )
         self.trigger = SimTriggerController(self.machine)
         width, height = sensor_size or preset.sensor_size
@@ -193,6 +199,11 @@ class SimWorld:
             electrons_per_grey=config.sim.electrons_per_grey,
             camera_hang_after_s=config.sim.camera_hang_after_s or None,
             encoder_counts_per_mm=config.trigger.encoder_counts_per_mm,
+            speed_changes=(
+                ((config.sim.speed_change_after_s, config.sim.speed_change_mm_min),)
+                if config.sim.speed_change_after_s
+                else ()
+            ),
         )
 
     @property

@@ -649,6 +649,20 @@ class AravisCamera:
             self._settings = dataclasses.replace(self._settings, exposure_us=exposure)
 
     @_short_traceback
+    def set_exposure(self, exposure_us: float) -> float:
+        """Write the exposure, armed or not (GenICam cameras take ExposureTime while
+        acquiring); returns the exposure read back, us. Raises HardwareConfigError outside the
+        camera's bounds, HardwareConnectError when it cannot be reached."""
+        if self._settings is None:
+            raise HardwareConfigError(f"{self.url}: configure before set_exposure")
+        session = self._require_session()
+        exposure = self._apply_exposure(session, exposure_us)
+        self._settings = dataclasses.replace(self._settings, exposure_us=exposure)
+        if self._trigger.exposure_us is not None:
+            self._trigger = dataclasses.replace(self._trigger, exposure_us=None)
+        return exposure
+
+    @_short_traceback
     def arm(self) -> None:
         """Create the stream with its buffer pool and start acquiring as prepared.
 

@@ -178,5 +178,15 @@ class Camera(Protocol):
     def trigger(self) -> None:
         """Software trigger (SOFTWARE mode only). Raises HardwareConfigError otherwise."""
 
+    def set_exposure(self, exposure_us: float) -> float:
+        """Change the exposure, armed or not; returns the exposure in force, us.
+
+        While armed the change reaches the sensor from a later exposure on (the next one in
+        simulation; on real cameras an exposure or two later, as the camera applies it);
+        `Frame.exposure_us` reports the exposure in force when the frame was fetched.
+        Raises HardwareConfigError for an exposure the camera cannot take (the one in force
+        stays), HardwareConnectError when the camera cannot be reached.
+        """
+
     def fetch(self, timeout_s: float) -> Frame:
         """Next frame. Raises HardwareTimeout when none arrives in time."""

@@ -168,6 +168,12 @@ class SimCamera:
             )
         self._pending.append(self._clock.now_s())
 
+    def set_exposure(self, exposure_us: float) -> float:
+        if not (exposure_us > 0 and math.isfinite(exposure_us)):
+            raise HardwareConfigError(f"{self.url}: exposure_us={exposure_us:g} must be > 0")
+        self._settings = dataclasses.replace(self._settings, exposure_us=float(exposure_us))
+        return self._settings.exposure_us
+
     def external_edge(self, t_s: float) -> None:
         """An edge on the trigger input at simulation time `t_s` (EXTERNAL mode)."""
         if self._armed and self._trigger.mode is TriggerMode.EXTERNAL:

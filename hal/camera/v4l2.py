@@ -147,6 +147,7 @@ class V4l2Camera:
         self._armed = False
         self._queue: collections.deque[_Grabbed] = collections.deque()
         self._ready = threading.Condition()
+        self._device_lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._error = ""
@@ -232,6 +233,17 @@ class V4l2Camera:
             self._settings = dataclasses.replace(self._settings, exposure_us=exposure)
         self._trigger = trigger
 
+    def set_exposure(self, exposure_us: float) -> float:
+        """Set the exposure between two grabs of the capture thread (armed or not); returns
+        the exposure read back, us."""
+        capture = self._require_open()
+        if self._settings is None:
+            raise HardwareConfigError(f"{self.url}: configure before set_exposure")
+        with self._device_lock:
+            exposure = self._apply_exposure(capture, exposure_us)
+        self._settings = dataclasses.replace(self._settings, exposure_us=exposure)
+        return exposure
+
     def arm(self) -> None:
         """Start the capture thread."""
         if self._armed:
@@ -313,15 +325,17 @@ class V4l2Camera:
 
     def _capture_loop(self, capture: cv2.VideoCapture) -> None:
         while not self._stop.is_set():
-            if not capture.grab():
+            with self._device_lock:
+                grabbed_ok = capture.grab()
+                host_ns = time.monotonic_ns()
+                stamp_ms = float(capture.get(cv2.CAP_PROP_POS_MSEC))
+                ok, image = capture.retrieve() if grabbed_ok else (False, None)
+            if not grabbed_ok:
                 if not self._stop.is_set():
                     with self._ready:
                         self._error = f"grabbing from {self.path} failed (unplugged?)"
                         self._ready.notify_all()
                 return
-            host_ns = time.monotonic_ns()
-            stamp_ms = float(capture.get(cv2.CAP_PROP_POS_MSEC))
-            ok, image = capture.retrieve()
             if not ok or image is None:
                 continue
             if self._fourcc == "YUYV":

@@ -154,6 +154,30 @@ def test_internal_frames_have_increasing_ids_and_timestamps(rig):
         assert frame.exposure_us == pytest.approx(applied.exposure_us)
 
 
+def test_the_exposure_changes_while_armed_and_frames_report_it(rig):
+    applied = rig.camera.configure(rig.settings)
+    rig.camera.prepare(_internal(rig))
+    rig.camera.arm()
+    rig.camera.fetch(GENEROUS_S)
+    wanted = applied.exposure_us * 2
+    in_force = rig.camera.set_exposure(wanted)
+    assert in_force == pytest.approx(wanted, rel=0.1)
+    frames = [rig.camera.fetch(GENEROUS_S) for _ in range(3)]
+    assert frames[-1].exposure_us == pytest.approx(in_force)
+    assert rig.camera.set_exposure(applied.exposure_us) == pytest.approx(
+        applied.exposure_us, rel=0.1
+    )
+
+
+def test_an_exposure_the_camera_cannot_take_is_refused_and_the_old_one_stays(rig):
+    applied = rig.camera.configure(rig.settings)
+    with pytest.raises(HardwareConfigError, match="exposure"):
+        rig.camera.set_exposure(-5.0)
+    rig.camera.prepare(_internal(rig))
+    rig.camera.arm()
+    assert rig.camera.fetch(GENEROUS_S).exposure_us == pytest.approx(applied.exposure_us)
+
+
 def test_mono16_frames_are_uint16_or_refused_by_name(rig):
     wanted = dataclasses.replace(rig.settings, pixel_format=PixelFormat.MONO16)
     try:

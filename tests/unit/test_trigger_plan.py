@@ -49,10 +49,34 @@ def test_standing_still_falls_back_to_the_period_and_bad_values_are_named():
         plan_triggers(_plan(5.0), tick_hz=TICK_HZ, pulse_width_us=2e6)
 
 
-def test_replanning_waits_for_a_speed_change_beyond_the_hysteresis():
-    replanner = TriggerReplanner(hysteresis=0.1)
-    assert replanner.due(50.0) and replanner.planned_for == 50.0
-    assert not replanner.due(54.0) and not replanner.due(-46.0)
-    assert replanner.due(56.0) and replanner.planned_for == 56.0
-    assert replanner.due(0.001) and replanner.planned_for == 0.0
-    assert not replanner.due(0.0) and replanner.due(5.0)
+def test_a_faster_speed_beyond_the_hysteresis_is_planned_for_at_once():
+    replanner = TriggerReplanner(50.0, hysteresis=0.1)
+    assert replanner.due(54.0, 0.0) is None and replanner.due(-54.0, 0.1) is None
+    assert replanner.due(56.0, 0.2) == 56.0 and replanner.planned_for == 56.0
+    assert replanner.due(-70.0, 0.3) == 70.0
+
+
+def test_a_slower_speed_is_planned_for_after_the_dwell_at_the_fastest_reading_meanwhile():
+    replanner = TriggerReplanner(100.0, hysteresis=0.1, slow_down_after_s=2.0)
+    assert replanner.due(50.0, 10.0) is None
+    assert replanner.due(60.0, 11.0) is None
+    assert replanner.due(40.0, 11.9) is None
+    assert replanner.due(45.0, 12.0) == 60.0 and replanner.planned_for == 60.0
+
+
+def test_a_reading_back_within_the_hysteresis_restarts_the_dwell():
+    replanner = TriggerReplanner(100.0, hysteresis=0.1, slow_down_after_s=2.0)
+    assert replanner.due(50.0, 0.0) is None
+    assert replanner.due(95.0, 1.0) is None
+    assert replanner.due(50.0, 2.5) is None
+    assert replanner.due(50.0, 4.5) == 50.0
+
+
+def test_standing_still_never_replans_and_a_restart_from_rest_is_planned_for():
+    replanner = TriggerReplanner(100.0, slow_down_after_s=0.0)
+    assert replanner.due(0.0, 0.0) is None and replanner.due(0.001, 5.0) is None
+    assert replanner.planned_for == 100.0
+    resting = TriggerReplanner(0.0)
+    assert resting.due(0.0, 0.0) is None and resting.due(5.0, 1.0) == 5.0
+    with pytest.raises(ValueError, match="hysteresis"):
+        TriggerReplanner(1.0, hysteresis=0.0)
