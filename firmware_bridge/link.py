@@ -10,19 +10,20 @@ firmware's verbs as blocking calls with timeouts, in the manner of Klipper's
   protocol version or message-table hash differs from this host's (`FirmwareMismatch`).
   It then takes a few quick round trips for the clock fit and, unless told not to, starts a
   background ping every `sync_interval_s`.
-* `ping`, `configure`, `arm`, `disarm`, `position`, `set_dead_man`: one request at a time
-  (requests are serialised; the microcontroller's receive buffer is small), each waiting
-  for its ACK or reply, or for the ERROR naming its sequence number (`FirmwareRejected`).
+* `ping`, `configure`, `arm`, `retime`, `disarm`, `position`, `set_dead_man`: one request at
+  a time (requests are serialised; the microcontroller's receive buffer is small), each
+  waiting for its ACK or reply, or for the ERROR naming its sequence number
+  (`FirmwareRejected`).
 * Sequence numbers (see `messages`): every host frame takes the next number. When a reply
   does not come, the same frame (same number) is sent again: if the first copy was lost the
   firmware acts on the second; if only the answer was lost the firmware answers the copy with
   ``ERROR(OUT_OF_SEQUENCE, expected = number + 1)``: it took the first copy, so no command is
-  taken twice. Its outcome went with the lost answer: CONFIGURE, DISARM, SET_DEAD_MAN and
-  GET_POSITION, which may be repeated, are then sent again under a new number for a
-  definite answer; ARM, which may not, raises `AnswerLost`. Any other OUT_OF_SEQUENCE means
-  the two sides disagree: the link resends HELLO (which resets the firmware's expectation and
-  re-checks its identity) and sends the command again under a new number. PING is never
-  resent: a late PONG would pair with the wrong send time.
+  taken twice. Its outcome went with the lost answer: CONFIGURE, RETIME, DISARM,
+  SET_DEAD_MAN and GET_POSITION, which may be repeated, are then sent again under a new
+  number for a definite answer; ARM, which may not, raises `AnswerLost`. Any other
+  OUT_OF_SEQUENCE means the two sides disagree: the link resends HELLO (which resets the
+  firmware's expectation and re-checks its identity) and sends the command again under a new
+  number. PING is never resent: a late PONG would pair with the wrong send time.
 * TRIGGER, STOPPED and BOOT frames become events (`TriggerEvent`, `StoppedEvent`,
   `BootEvent`) on a bounded queue (`next_event`, `events`); when it is full the oldest event
   is dropped and counted. A TRIGGER's tick is converted to host time with the clock fit at
@@ -279,12 +280,13 @@ _REPLY_TO = {
     "PING": "PONG",
     "CONFIGURE": "ACK",
     "ARM": "ACK",
+    "RETIME": "ACK",
     "DISARM": "ACK",
     "SET_DEAD_MAN": "ACK",
     "GET_POSITION": "POSITION",
 }
 _EVENTS = frozenset({"TRIGGER", "STOPPED", "BOOT"})
-_REPEATABLE = frozenset({"CONFIGURE", "DISARM", "SET_DEAD_MAN", "GET_POSITION"})
+_REPEATABLE = frozenset({"CONFIGURE", "RETIME", "DISARM", "SET_DEAD_MAN", "GET_POSITION"})
 """Commands that do the same when taken twice in a row."""
 _LINE_ERRORS = frozenset({ErrorCode.BAD_CRC, ErrorCode.BAD_LENGTH})
 """ERRORs about damaged bytes: the firmware cannot know whose frame they were (their sequence
@@ -493,7 +495,7 @@ class McuLink:
         *,
         timeout_s: float = 0.5,
     ) -> None:
-        """Set up triggering (only while disarmed).
+        """Set up triggering (only while disarmed; `retime` changes the spacing while armed).
 
         Args:
             source: `TriggerSource.PERIOD` (a pulse every `period_ticks`) or
@@ -530,6 +532,51 @@ class McuLink:
             FirmwareRejected (e.g. BAD_STATE), FirmwareTimeout, NotConnected, LinkClosed.
         """
         self._request("ARM", {}, timeout_s)
+
+    def retime(
+        self, *, period_ticks: int = 0, encoder_divisor: int = 0, timeout_s: float = 0.5
+    ) -> None:
+        """Change the spacing of the armed trigger without stopping it (RETIME).
+
+        The pulse width, the pulse count of `configure` and the TRIGGER numbering carry on
+        (no STOPPED, no gap in `trigger_seq`); the new spacing also replaces the configured
+        one, so a later `arm` without a new `configure` uses it. Only the field of the
+        configured source is looked at; the other one is ignored (any value).
+
+        PERIOD source: `period_ticks` must be what `configure` accepts with the configured
+        pulse width (width + 100 <= period <= 2^31 ticks). The firmware programs each rising
+        edge when the pulse before it falls, so the new period first separates pulse k from
+        pulse k + 1, where k is the first pulse whose falling edge comes after the firmware
+        took the RETIME: sent during a pulse, the next rise is that pulse's rise +
+        `period_ticks`; sent between pulses, the rise already programmed keeps its old tick
+        and the one after it is at the new spacing; sent before the first pulse, the first
+        pulse still rises at the configured start. So the change takes effect within one old
+        period plus one new one.
+
+        ENCODER source: `encoder_divisor` (1 ... 2^31 - 1) applies from the last trigger
+        position: the next pulse comes when the encoder is `encoder_divisor` counts from it,
+        and the grid goes on in steps of the new divisor. When the encoder is already that
+        far or further from the last trigger position, the next count triggers once and the
+        grid goes on from that count (no burst catching up the old grid). A pulse already
+        due when RETIME arrives (the old divisor reached while a pulse ran) still follows.
+
+        Args:
+            period_ticks: the new pulse period (ticks) for the PERIOD source.
+            encoder_divisor: the new encoder counts per pulse for the ENCODER source.
+            timeout_s: how long to wait for the answer (s).
+
+        Raises:
+            FirmwareRejected: BAD_STATE when not armed (also after the run ended by its
+                count or the dead-man), BAD_VALUE for a period or divisor the firmware
+                refuses; the running trigger is then unchanged.
+            FirmwareTimeout, NotConnected, LinkClosed; FramingError (a ValueError) for a value
+            its field cannot hold.
+        """
+        self._request(
+            "RETIME",
+            {"period_ticks": period_ticks, "encoder_divisor": encoder_divisor},
+            timeout_s,
+        )
 
     def disarm(self, *, timeout_s: float = 0.5) -> None:
         """Stop triggering; a STOPPED event follows.

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 START_BYTE = 0xA5
 MAX_LEN = 40
 """Largest LEN: sequence, id and a payload of at most 38 bytes."""
-PROTOCOL_VERSION = (1, 0)
+PROTOCOL_VERSION = (1, 1)
 """(major, minor) of the protocol; the firmware reports it in HELLO_REPLY."""
 
 FIELD_FORMATS = {"u8": "B", "u16": "H", "u32": "I", "u64": "Q", "i32": "i"}
@@ -135,6 +135,16 @@ MESSAGES: tuple[Message, ...] = (
         D_MCU,
         (("timeout_ms", "u16"),),
         "stop triggering when no valid frame arrives for this long; 0 = off",
+    ),
+    Message(
+        0x08,
+        "RETIME",
+        D_MCU,
+        (("period_ticks", "u32"), ("encoder_divisor", "u32")),
+        "new spacing for the armed trigger, kept for later ARMs (only while armed); PERIOD "
+        "source: period_ticks from the rise whose successor is not yet programmed, "
+        "encoder_divisor ignored; ENCODER: encoder_divisor from the last trigger position, "
+        "period_ticks ignored",
     ),
     Message(
         0x81,

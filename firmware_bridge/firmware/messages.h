@@ -14,12 +14,12 @@
 #include <stdint.h>
 
 #define PROTOCOL_VERSION_MAJOR 1
-#define PROTOCOL_VERSION_MINOR 0
+#define PROTOCOL_VERSION_MINOR 1
 #define MSG_START_BYTE 0xA5
 #define MSG_MAX_LEN 40
 #define MSG_MAX_PAYLOAD 38
-#define MSG_TABLE_HASH 0x00A7B3ABUL
-#define MSG_TO_MCU_COUNT 7
+#define MSG_TABLE_HASH 0xFFDC31A1UL
+#define MSG_TO_MCU_COUNT 8
 
 /* ErrorCode: `ERROR.code`: why the firmware rejected a frame or a command. */
 #define ERROR_CODE_BAD_CRC 1
@@ -98,6 +98,17 @@ typedef struct __attribute__((packed)) {
     uint16_t timeout_ms;
 } msg_set_dead_man_t;
 _Static_assert(sizeof(msg_set_dead_man_t) == MSG_SIZE_SET_DEAD_MAN, "SET_DEAD_MAN payload size");
+
+/* RETIME (to_mcu): new spacing for the armed trigger, kept for later ARMs (only while armed); PERIOD source: period_ticks from the rise whose successor is not yet programmed, encoder_divisor ignored; ENCODER: encoder_divisor from the last trigger position, period_ticks ignored */
+#define MSG_ID_RETIME 0x08
+#define MSG_SIZE_RETIME 8
+#define MSG_RETIME_PERIOD_TICKS_OFFSET 0
+#define MSG_RETIME_ENCODER_DIVISOR_OFFSET 4
+typedef struct __attribute__((packed)) {
+    uint32_t period_ticks;
+    uint32_t encoder_divisor;
+} msg_retime_t;
+_Static_assert(sizeof(msg_retime_t) == MSG_SIZE_RETIME, "RETIME payload size");
 
 /* HELLO_REPLY (to_host): protocol version, table hash, tick rate and the tick at the reply */
 #define MSG_ID_HELLO_REPLY 0x81
@@ -201,6 +212,7 @@ _Static_assert(sizeof(msg_error_t) == MSG_SIZE_ERROR, "ERROR payload size");
     X(ARM, 0x04, 0) \
     X(DISARM, 0x05, 0) \
     X(GET_POSITION, 0x06, 0) \
-    X(SET_DEAD_MAN, 0x07, 2)
+    X(SET_DEAD_MAN, 0x07, 2) \
+    X(RETIME, 0x08, 8)
 
 #endif /* MESSAGES_H */

@@ -126,6 +126,12 @@ static void command(uint8_t seq, uint8_t id, const uint8_t *payload, uint64_t re
         refused = trigger_configure(&config);
         break;
     }
+    case MSG_ID_RETIME: {
+        msg_retime_t retime;
+        memcpy(&retime, payload, sizeof retime);
+        refused = trigger_retime(&retime);
+        break;
+    }
     case MSG_ID_ARM:
         refused = trigger_arm(clock_now());
         break;

@@ -39,8 +39,9 @@
  * read when the reply is built.
  *
  * Replies: HELLO -> HELLO_REPLY, PING -> PONG, GET_POSITION -> POSITION; CONFIGURE, ARM,
- * DISARM and SET_DEAD_MAN -> ACK(their seq) when accepted. DISARM is ACKed also when nothing
- * is armed (and then no STOPPED follows). SET_DEAD_MAN is accepted armed or not.
+ * RETIME, DISARM and SET_DEAD_MAN -> ACK(their seq) when accepted. DISARM is ACKed also when
+ * nothing is armed (and then no STOPPED follows). SET_DEAD_MAN is accepted armed or not;
+ * RETIME only while armed, CONFIGURE only while not.
  */
 #ifndef PROTOCOL_H
 #define PROTOCOL_H

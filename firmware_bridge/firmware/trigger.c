@@ -18,9 +18,10 @@
  * programmed edge still in the future and ignores itself.
  *
  * The state below is changed only with interrupts disabled: in the compare and encoder
- * interrupts, or in trigger_arm() and trigger_stop(), which mask interrupts around their
- * work. trigger_configure() writes the configuration only while disarmed, when no interrupt
- * reads it; the output queue has one producer and one consumer (see trigger_peek_event).
+ * interrupts, or in trigger_arm(), trigger_stop() and trigger_retime(), which mask
+ * interrupts around their work. trigger_configure() writes the configuration only while
+ * disarmed, when no interrupt reads it; the output queue has one producer and one consumer
+ * (see trigger_peek_event).
  */
 #include "trigger.h"
 
@@ -260,6 +261,17 @@ void trigger_init(void)
     stop_reason = NO_STOP;
 }
 
+static uint8_t period_fits(uint32_t width, uint32_t period)
+{
+    return period > width && period - width >= MIN_INTERVAL_TICKS &&
+           period <= MAX_INTERVAL_TICKS;
+}
+
+static uint8_t divisor_valid(uint32_t divisor)
+{
+    return divisor != 0 && divisor <= 0x7FFFFFFFUL;
+}
+
 uint8_t trigger_configure(const msg_configure_t *requested)
 {
     if (armed)
@@ -268,13 +280,10 @@ uint8_t trigger_configure(const msg_configure_t *requested)
     if (width < MIN_INTERVAL_TICKS || width > MAX_INTERVAL_TICKS)
         return ERROR_CODE_BAD_VALUE;
     if (requested->source == TRIGGER_SOURCE_PERIOD) {
-        uint32_t period = requested->period_ticks;
-        if (period == 0 || width >= period || period - width < MIN_INTERVAL_TICKS ||
-            period > MAX_INTERVAL_TICKS)
+        if (!period_fits(width, requested->period_ticks))
             return ERROR_CODE_BAD_VALUE;
     } else if (requested->source == TRIGGER_SOURCE_ENCODER) {
-        uint32_t divisor = requested->encoder_divisor;
-        if (divisor == 0 || divisor > 0x7FFFFFFFUL)
+        if (!divisor_valid(requested->encoder_divisor))
             return ERROR_CODE_BAD_VALUE;
     } else {
         return ERROR_CODE_BAD_VALUE;
@@ -282,6 +291,41 @@ uint8_t trigger_configure(const msg_configure_t *requested)
     memcpy(&config, requested, sizeof config);
     configured = 1;
     return 0;
+}
+
+/* Without this, a smaller divisor that the encoder is already past would trigger on every
+ * following count until the grid caught up (a burst at the fastest rate allowed). */
+static void realign_encoder_grid(int32_t divisor)
+{
+    int32_t position = encoder_position_isr();
+    int32_t moved = position - last_trigger_position;
+    if (moved >= divisor)
+        last_trigger_position = position - (divisor - 1);
+    else if (moved <= -divisor)
+        last_trigger_position = position + (divisor - 1);
+}
+
+uint8_t trigger_retime(const msg_retime_t *requested)
+{
+    uint8_t result = 0;
+    uint8_t sreg = SREG;
+    cli();
+    if (!armed) {
+        result = ERROR_CODE_BAD_STATE;
+    } else if (config.source == TRIGGER_SOURCE_PERIOD) {
+        if (period_fits(config.pulse_width_ticks, requested->period_ticks))
+            config.period_ticks = requested->period_ticks;
+        else
+            result = ERROR_CODE_BAD_VALUE;
+    } else if (divisor_valid(requested->encoder_divisor)) {
+        config.encoder_divisor = requested->encoder_divisor;
+        if (encoder_started)
+            realign_encoder_grid((int32_t)requested->encoder_divisor);
+    } else {
+        result = ERROR_CODE_BAD_VALUE;
+    }
+    SREG = sreg;
+    return result;
 }
 
 uint8_t trigger_arm(uint64_t now)

@@ -20,6 +20,18 @@
  * pulse follows as soon as allowed; reaching it twice in that time skips a pulse (the
  * TRIGGER positions show the gap). The tick in TRIGGER is always the rising edge's tick.
  *
+ * Re-timing (trigger_retime, while armed): the spacing changes without a stop, so the pulse
+ * width, the count and trigger_seq carry on. Period mode: the falling edge's interrupt
+ * programs the next rise at rise + period_ticks, so the new period first separates pulse k
+ * from pulse k + 1, k being the first pulse whose falling edge (its compare interrupt, a few
+ * us after the edge) comes after the change; a rise that is already programmed keeps its
+ * tick. Encoder mode: the next pulse is due when |position - last trigger position| reaches
+ * the new divisor, and the grid goes on in steps of it from there. When the encoder is
+ * already that far or further from the last trigger position, the last trigger position is
+ * moved to one count less than the new divisor behind the position (in the direction it
+ * moved), so the next count triggers once instead of a burst catching up the grid. A pulse
+ * already due (the divisor reached while a pulse ran) still follows.
+ *
  * count > 0 stops after that many pulses (STOPPED COUNT_DONE); a stop request (DISARM,
  * dead-man) while a pulse is high lets that pulse end at its width first. TRIGGER events
  * and the one STOPPED are queued here and sent by the main loop (protocol.c); an event
@@ -43,6 +55,12 @@ void trigger_init(void);
 
 /* 0, or the ERROR_CODE_* that rejects the configuration. */
 uint8_t trigger_configure(const msg_configure_t *config);
+
+/* 0, or the ERROR_CODE_* that refuses the new spacing: BAD_STATE unless armed, BAD_VALUE for
+ * a period (PERIOD source; the configured pulse width must fit) or divisor (ENCODER) that
+ * CONFIGURE would refuse; the field of the other source is ignored. Accepted, it changes the
+ * running trigger and the stored configuration with interrupts masked. */
+uint8_t trigger_retime(const msg_retime_t *retime);
 
 /* 0, or the ERROR_CODE_* that refuses to arm; `now` is the current tick. */
 uint8_t trigger_arm(uint64_t now);

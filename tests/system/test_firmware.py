@@ -136,6 +136,28 @@ def configure(
     )
 
 
+def retime(link: Link, *, period: int = 0, divisor: int = 0) -> DecodedFrame:
+    return link.command("RETIME", period_ticks=period, encoder_divisor=divisor)
+
+
+def bracketed_retime(link: Link, *, period: int = 0, divisor: int = 0) -> tuple[str, int, int]:
+    """RETIME sent between a PING and a GET_POSITION: its answer's name, and a tick before
+    and one after the firmware took it (the PING's reception, the POSITION's reading)."""
+    token = 0x5E700 + link.seq
+    link.send("PING", token=token)
+    seq = link.send("RETIME", period_ticks=period, encoder_divisor=divisor)
+    link.send("GET_POSITION")
+    before = link.expect("PONG", token=token).values["tick"]
+    answer = link.wait_for(
+        lambda f: (
+            (f.name == "ACK" and f.values["acked_seq"] == seq)
+            or (f.name == "ERROR" and f.values["rejected_seq"] == seq)
+        )
+    )
+    after = link.expect("POSITION").values["tick"]
+    return answer.name, before, after
+
+
 def raw_frame(seq: int, message_id: int, payload: bytes = b"") -> bytes:
     body = bytes([len(payload) + 2, seq, message_id]) + payload
     crc = crc16(body)
@@ -287,6 +309,148 @@ def test_encoder_mode_triggers_every_divisor_counts(start_mcu, counts_per_s):
     b = link.expect("POSITION").values
     rate = (b["position"] - a["position"]) / ((b["tick"] - a["tick"]) / 2_000_000)
     assert rate == pytest.approx(counts_per_s, rel=0.02)
+
+
+@pytest.mark.parametrize(
+    ("delay_s", "taken_during_a_pulse"),
+    [(0.0, True), (0.012, False)],
+    ids=["during-a-pulse", "between-pulses"],
+)
+def test_retime_changes_the_period_from_the_first_rise_not_yet_programmed(
+    start_mcu, delay_s, taken_during_a_pulse
+):
+    """10 ms pulses every 20 ms; RETIME to 15 ms right after TRIGGER 3 (while pulse 3 is
+    high) or 12 ms later (pulse 3 has fallen, rise 4 is programmed). The new period starts
+    at the rise of the first pulse whose falling edge comes after the RETIME; the count, the
+    width and trigger_seq carry on, and the next ARM runs at the new period."""
+    width, old, new, count = 20_000, 40_000, 30_000, 10
+    mcu, link = start_mcu()
+    link.hello()
+    assert configure(link, width=width, period=old, count=count).name == "ACK"
+    assert link.command("ARM").name == "ACK"
+    link.expect("TRIGGER", trigger_seq=3)
+    time.sleep(delay_s)
+    answer, taken_after, taken_before = bracketed_retime(link, period=new, divisor=12345)
+    assert answer == "ACK"
+    stopped = link.expect("STOPPED", timeout_s=3.0).values
+    assert stopped == {"reason": StopReason.COUNT_DONE, "triggers": count}
+
+    triggers = link.frames("TRIGGER")
+    assert [t.values["trigger_seq"] for t in triggers] == list(range(1, count + 1))
+    ticks = [t.values["tick"] for t in triggers]
+    first_new = next(k for k, tick in enumerate(ticks) if tick + width > taken_after)
+    assert ticks[first_new] + width > taken_before, "a falling edge within the bracket"
+    if taken_during_a_pulse:
+        assert ticks[first_new] < taken_after
+    else:
+        assert ticks[first_new - 1] + width < taken_after and taken_before < ticks[first_new]
+    spacing = [old] * first_new + [new] * (count - 1 - first_new)
+    assert [b - a for a, b in itertools.pairwise(ticks)] == spacing
+
+    measured = pulses(mcu)
+    assert len(measured) == count and mcu.edges()[-1][2] == 0
+    assert all(abs((fall - rise) - width * TICK_NS) <= CYCLE_NS for rise, fall in measured)
+    rises = [rise for rise, _ in measured]
+    for (a, b), ticks_apart in zip(itertools.pairwise(rises), spacing, strict=True):
+        assert abs((b - a) - ticks_apart * TICK_NS) <= CYCLE_NS
+
+    assert link.command("ARM").name == "ACK"
+    link.expect("STOPPED", timeout_s=3.0)
+    second = pulses(mcu)[count:]
+    assert len(second) == count
+    for (a, _), (b, _) in itertools.pairwise(second):
+        assert abs((b - a) - new * TICK_NS) <= CYCLE_NS
+
+
+@pytest.mark.parametrize(
+    ("new_divisor", "counts_per_s", "already_past"),
+    [(300, 17_000.0, False), (5, 1_000.0, True)],
+    ids=["from-the-last-trigger", "encoder-already-past-it"],
+)
+def test_retime_changes_the_encoder_divisor(start_mcu, new_divisor, counts_per_s, already_past):
+    """Triggers every 200 counts from position 0; the encoder stops some counts after
+    trigger 3 (at least the 8 counts of the TRIGGER frame's time on the line), RETIME sets a
+    new divisor, and the encoder runs on. A larger divisor counts
+    from the last trigger position; one the encoder is already past triggers on the next
+    count, and the grid goes on from there in steps of the new divisor."""
+    old_divisor, width = 200, 200
+    mcu, link = start_mcu()
+    link.hello()
+    assert (
+        configure(link, source=TriggerSource.ENCODER, width=width, divisor=old_divisor).name
+        == "ACK"
+    )
+    assert link.command("ARM").name == "ACK"
+    link.expect("TRIGGER", trigger_seq=1)
+    mcu.set_encoder_rate(17_000.0)
+    link.expect("TRIGGER", trigger_seq=3)
+    mcu.set_encoder_rate(0.0)
+    time.sleep(0.05)
+    link.send("GET_POSITION")
+    stopped_at = link.expect("POSITION").values["position"]
+    before = [t.values["position"] for t in link.frames("TRIGGER")]
+    assert before == [k * old_divisor for k in range(len(before))]
+    moved = stopped_at - before[-1]
+    assert 0 <= moved < old_divisor
+    assert (moved >= new_divisor) == already_past
+
+    assert retime(link, divisor=new_divisor, period=7).name == "ACK"
+    mcu.set_encoder_rate(counts_per_s)
+    link.expect("TRIGGER", trigger_seq=len(before) + 5, timeout_s=3.0)
+    assert link.command("DISARM").name == "ACK"
+    stopped = link.expect("STOPPED").values
+
+    triggers = [t.values for t in link.frames("TRIGGER")]
+    assert [t["trigger_seq"] for t in triggers] == list(range(1, len(triggers) + 1))
+    assert len(triggers) == stopped["triggers"] == len(pulses(mcu))
+    after = triggers[len(before) :]
+    first = stopped_at + 1 if already_past else before[-1] + new_divisor
+    assert [t["position"] for t in after] == [first + k * new_divisor for k in range(len(after))]
+    expected_ticks = new_divisor / counts_per_s * 2_000_000
+    gaps = [b["tick"] - a["tick"] for a, b in itertools.pairwise(after)]
+    assert all(abs(gap - expected_ticks) <= 20 for gap in gaps), gaps
+
+
+def test_retime_is_refused_unless_armed_and_a_bad_value_changes_nothing(start_mcu):
+    mcu, link = start_mcu()
+    link.hello()
+    retime_id = BY_NAME["RETIME"].id
+    seq = link.seq
+    assert retime(link, period=4000).values == {
+        "code": ErrorCode.BAD_STATE,
+        "detail": retime_id,
+        "rejected_seq": seq,
+    }
+    assert configure(link, width=200, period=2000).name == "ACK"
+    assert retime(link, period=4000).values["code"] == ErrorCode.BAD_STATE
+    assert link.command("ARM").name == "ACK"
+    link.expect("TRIGGER", trigger_seq=3)
+    for bad_period in (250, 200, 0, 0x80000001):
+        seq = link.seq
+        assert retime(link, period=bad_period, divisor=5).values == {
+            "code": ErrorCode.BAD_VALUE,
+            "detail": retime_id,
+            "rejected_seq": seq,
+        }
+    link.expect("TRIGGER", trigger_seq=30)
+    assert link.command("DISARM").name == "ACK"
+    stopped = link.expect("STOPPED").values
+    assert retime(link, period=4000).values["code"] == ErrorCode.BAD_STATE
+
+    ticks = [t.values["tick"] for t in link.frames("TRIGGER")]
+    assert len(ticks) == stopped["triggers"]
+    assert {b - a for a, b in itertools.pairwise(ticks)} == {2000}
+    rises = [rise for rise, _ in pulses(mcu)]
+    assert len(rises) == stopped["triggers"]
+    assert all(abs((b - a) - 2000 * TICK_NS) <= CYCLE_NS for a, b in itertools.pairwise(rises))
+
+    assert configure(link, source=TriggerSource.ENCODER, width=200, divisor=100).name == "ACK"
+    assert link.command("ARM").name == "ACK"
+    for bad_divisor in (0, 0x80000000):
+        assert retime(link, divisor=bad_divisor, period=4000).values["code"] == (
+            ErrorCode.BAD_VALUE
+        )
+    assert link.command("DISARM").name == "ACK"
 
 
 def test_dead_man_stops_a_silent_host(start_mcu):

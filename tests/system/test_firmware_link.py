@@ -200,8 +200,11 @@ def test_firmware_from_another_table_is_refused(start):
 
 
 def test_a_host_of_another_protocol_version_refuses(start):
-    run = start(expected_version=(PROTOCOL_VERSION[0] + 1, 0), sync_interval_s=None)
-    with pytest.raises(FirmwareMismatch, match=r"protocol 1\.0 .* speaks 2\.0"):
+    major, minor = PROTOCOL_VERSION
+    run = start(expected_version=(major + 1, 0), sync_interval_s=None)
+    with pytest.raises(
+        FirmwareMismatch, match=rf"protocol {major}\.{minor} .* speaks {major + 1}\.0"
+    ):
         run.link.connect(timeout_s=5.0)
 
 
@@ -230,6 +233,27 @@ def test_period_triggering_events_and_edges(start):
         assert all(abs(step - period * TICK_NS) < 2_000_000 for step in steps), steps
 
 
+def test_retime_changes_the_spacing_of_the_running_trigger(start):
+    run = start(sync_interval_s=0.05)
+    link = run.link
+    link.connect(timeout_s=5.0)
+    link.drain_events()
+    width, old, new, count = 200, 20_000, 30_000, 12
+    link.configure(TriggerSource.PERIOD, width, old, count=count)
+    link.arm()
+    received = [link.next_event(2.0) for _ in range(3)]
+    assert all(isinstance(event, TriggerEvent) for event in received)
+    link.retime(period_ticks=new)
+    triggers, stopped = _until_stopped(link, timeout_s=10.0)
+    triggers = [*received, *triggers]
+    assert stopped.reason == StopReason.COUNT_DONE and stopped.triggers == count
+    assert [t.trigger_seq for t in triggers] == list(range(1, count + 1))
+    steps = [b.tick - a.tick for a, b in zip(triggers, triggers[1:], strict=False)]
+    switch = steps.index(new)
+    assert 3 <= switch < count - 1 and steps == [old] * switch + [new] * (count - 1 - switch)
+    assert len(_rising_edges(run.mcu)) == count
+
+
 def test_commands_refused_by_the_firmware_raise_with_the_code(start):
     run = start(sync_interval_s=None)
     link = run.link
@@ -238,10 +262,16 @@ def test_commands_refused_by_the_firmware_raise_with_the_code(start):
         link.configure(TriggerSource.PERIOD, 200, 100)
     assert bad_value.value.code == ErrorCode.BAD_VALUE and "CONFIGURE" in str(bad_value.value)
     link.configure(TriggerSource.PERIOD, 200, 2000)
+    with pytest.raises(FirmwareRejected) as not_armed:
+        link.retime(period_ticks=4000)
+    assert not_armed.value.code == ErrorCode.BAD_STATE and "RETIME" in str(not_armed.value)
     link.arm()
     with pytest.raises(FirmwareRejected) as bad_state:
         link.arm()
     assert bad_state.value.code == ErrorCode.BAD_STATE
+    with pytest.raises(FirmwareRejected) as too_short:
+        link.retime(period_ticks=250)
+    assert too_short.value.code == ErrorCode.BAD_VALUE
     link.disarm()
     position = link.position()
     assert position.position == 0 and position.host_time_ns is not None
@@ -454,6 +484,21 @@ def test_a_lost_ack_of_a_repeatable_command_is_confirmed_by_repeating_it(lossy):
     stats = link.statistics()
     assert stats.resends == 1 and stats.errors == {"OUT_OF_SEQUENCE": 1}
     assert stats.resyncs == 0
+
+
+def test_a_lost_ack_of_retime_is_confirmed_by_repeating_it(lossy):
+    link, line = lossy
+    link.configure(TriggerSource.PERIOD, 200, 2000)
+    link.arm()
+    line.drop_to_host.append("ACK")
+    link.retime(period_ticks=3000)
+    assert line.dropped == ["ACK"]
+    stats = link.statistics()
+    assert stats.resends == 1 and stats.errors == {"OUT_OF_SEQUENCE": 1}
+    time.sleep(0.05)
+    link.disarm()
+    triggers, _ = _until_stopped(link, timeout_s=2.0)
+    assert {b.tick - a.tick for a, b in zip(triggers[-4:], triggers[-3:], strict=False)} == {3000}
 
 
 def test_a_lost_ack_of_arm_is_reported_and_the_events_tell_the_outcome(lossy):
