@@ -185,6 +185,10 @@ class SimConfig:
     `speed_change_after_s` > 0 makes the simulated controller change the crosshead speed to
     `speed_change_mm_min` that long after the start, as a two-speed test program does (the
     appliance re-plans exposure and triggers from the speed it reads); 0 = one speed.
+    `controller = "modbus-tcp"` serves the simulated frame on a Modbus TCP server on
+    127.0.0.1 (a free port, the generic register map) and reads it through the appliance's
+    Modbus client and poller, as a real controller is read (`appliance.sim.controller_server`);
+    `direct` reads it in-process.
     """
 
     material: str = field(default="rubber", metadata={"choices": ("rubber", "metal")})
@@ -195,6 +199,7 @@ class SimConfig:
     read_noise_grey: float = field(default=0.5, metadata=_range(0.0, 50.0))
     electrons_per_grey: float = field(default=40.0, metadata=_range(0.0, 1e6))
     camera_hang_after_s: float = field(default=0.0, metadata=_range(0.0, 1e6))
+    controller: str = field(default="direct", metadata={"choices": ("direct", "modbus-tcp")})
     speed_change_after_s: float = field(default=0.0, metadata=_range(0.0, 1e6))
     speed_change_mm_min: float = field(default=0.0, metadata=_range(0.0, 10000.0))
 

@@ -47,7 +47,8 @@ class Replan:
     """One re-planning during a test.
 
     Attributes:
-        time_s: controller time of the speed reading that called for it, s.
+        time_s: time of the frame whose controller reading called for it, s since the
+            reference (the strain file's time axis).
         speed_mm_min: the speed read that called for it, mm/min (the plan is made for the
             top of the hysteresis band above it).
         exposure_us: the exposure in force afterwards, us.
@@ -113,15 +114,15 @@ class ExposurePacer:
         """Re-plannings that could not be applied."""
         return sum(1 for replan in self.replans if replan.error)
 
-    def follow(self, state: FrameState | None) -> None:
-        """Look at one controller reading (None = none this frame) and re-plan if due.
+    def follow(self, time_s: float, state: FrameState | None) -> None:
+        """Look at the controller reading taken with the frame of `time_s` (s since the
+        reference; None = no reading this frame) and re-plan if due.
 
         Called on the acquisition thread after each frame; it blocks for the device writes
         (a serial round trip and a camera register write) only when a plan is applied.
         """
         if state is None or not math.isfinite(state.speed_mm_min):
             return
-        time_s = state.timestamp_ns * 1e-9
         speed = self.replanner.due(state.speed_mm_min, time_s)
         if speed is None:
             return

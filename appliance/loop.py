@@ -140,9 +140,10 @@ class MeasurementLoop:
             faults; 0 = the first connection loss or timeout is a fault.
         device_listeners: called with every `DeviceEvent` (on the acquisition thread; fast,
             non-blocking work only).
-        machine_listeners: called with the controller reading of every frame (None when
-            there is none), on the acquisition thread before the frame is queued (the
-            exposure pacing, `appliance.exposure_pacing`).
+        machine_listeners: called with the time of every frame after the reference (s since
+            the reference, as `StrainSample.time_s`) and the controller reading taken with it
+            (None when there is none), on the acquisition thread before the frame is queued
+            (the exposure pacing, `appliance.exposure_pacing`).
         wall: wall clock, s (injected for tests).
     """
 
@@ -162,7 +163,7 @@ class MeasurementLoop:
         break_detection: BreakDetection | None = None,
         camera_outage_timeout_s: float = 0.0,
         device_listeners: Sequence[Callable[[DeviceEvent], None]] = (),
-        machine_listeners: Sequence[Callable[[FrameState | None], None]] = (),
+        machine_listeners: Sequence[Callable[[float, FrameState | None], None]] = (),
         wall: Callable[[], float] = time.perf_counter,
     ) -> None:
         self.camera = camera
@@ -344,8 +345,10 @@ class MeasurementLoop:
                 elif self._time_offset_ns:
                     frame = self._rebased(frame, self._time_offset_ns)
                 machine = self._read_machine()
-                for listener in self.machine_listeners:
-                    listener(machine)
+                if self.machine_listeners:
+                    time_s = (frame.timestamp_ns - self._reference_time_ns) * 1e-9
+                    for listener in self.machine_listeners:
+                        listener(time_s, machine)
                 gap = frame.frame_id - self._last_frame_id - 1
                 self._last_frame_id = frame.frame_id
                 self._last_timestamp_ns = frame.timestamp_ns

@@ -237,9 +237,14 @@ def _sim_rig(config: Config) -> _Rig:
     )
     if config.trigger.url:
         _check_trigger_mcu_config(config)
+    frame: TensileFrame = world.frame
+    if config.sim.controller == "modbus-tcp":
+        from appliance.sim.controller_server import ModbusServedFrame
+
+        frame = ModbusServedFrame(world.frame, poll_rate_hz=config.frame.poll_rate_hz)
     return _Rig(
         camera=world.camera,
-        frame=world.frame,
+        frame=frame,
         optics=optics,
         speed_mm_min=world.speed_mm_min,
         gauge_length_mm=config.gauge.length_mm or world.gauge_length_mm,
@@ -589,6 +594,7 @@ def run_test(
         "blur_px_at_crosshead_speed": plan.blur_px,
         "blur_budget_met": bool(plan.budget_met),
         "trigger_source": config.trigger.source,
+        "frame_url": frame.url if frame is not None else "",
     }
     if triggers is not None:
         extra["trigger_period_ticks"] = triggers.period_ticks

@@ -1,14 +1,9 @@
 """Real frame-controller peers for the Modbus frame client's tests: pymodbus servers on loopback.
 
-* `ControllerServer`: a pymodbus 3.16 server (TCP on 127.0.0.1, or RTU on one end of a socat
-  pty pair) on an asyncio loop in a background thread, answering from a register source. Its
-  datastore is pymodbus' SimDevice with the four tables apart (coils, discrete inputs,
-  holding, input registers; 128 registers and 64 bits each, so an address beyond them gets
-  pymodbus' own exception 2). The device's `action` callback, which pymodbus awaits on every
-  access, puts the source's values into the registers before a read is answered and hands
-  every write to the source. `stop` ends serving (the port is free, connections closed) and
-  `serve_tcp` may serve again on the same port: a controller that goes away and comes back.
-* `SimulatedController`: the source for a live frame: `TinyMachine` (crosshead moving at a
+* `ControllerServer` and `MachineRegisters` come from `appliance.sim.controller_server`: a
+  pymodbus server on an asyncio thread, TCP on 127.0.0.1 or RTU on one end of a socat pty
+  pair, answering from a register source, which may stop serving and serve again.
+* `SimulatedController`: `MachineRegisters` for a live frame: `TinyMachine` (crosshead moving at a
   set speed, force from a stiffness, encoder counts) behind a `RegisterMap` (the generic
   preset by default). It honours the map's command coils or command registers and the speed
   set point, logging every command in the order it arrived.
@@ -26,7 +21,6 @@ line, inter-frame timing on the wire (a pty ignores baud rate).
 
 from __future__ import annotations
 
-import asyncio
 import bisect
 import csv
 import math
@@ -35,166 +29,16 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Protocol
 
 import serial
 from pymodbus.constants import ExcCodes
-from pymodbus.server import ModbusSerialServer, ModbusTcpServer
-from pymodbus.simulator import DataType, SimData, SimDevice
 
-from hal.frame.register_map import (
-    BIT_TABLES,
-    COMMANDS,
-    GENERIC_CONTROLLER,
-    RegisterMap,
-)
+from appliance.sim.controller_server import MachineRegisters
+from hal.frame.register_map import BIT_TABLES, GENERIC_CONTROLLER, RegisterMap
 
 DATA = Path(__file__).parent / "data"
 RECORDED_TABLE = DATA / "controller_registers.csv"
 RECORDED_MAP = DATA / "recorded_controller.toml"
-
-REGISTERS_PER_TABLE = 128
-BITS_PER_TABLE = 64
-START_TIMEOUT_S = 10.0
-
-_TABLE_OF_FUNCTION = {
-    1: "coil",
-    5: "coil",
-    15: "coil",
-    2: "discrete",
-    3: "holding",
-    6: "holding",
-    16: "holding",
-    22: "holding",
-    23: "holding",
-    4: "input",
-}
-
-
-class RegisterSource(Protocol):
-    """What a `ControllerServer` answers from."""
-
-    def image(self, table: str) -> Mapping[int, int | bool]:
-        """The cells of `table` to serve now: {address: word or bit}; others keep their value."""
-
-    def write(self, table: str, address: int, values: list[int] | list[bool]) -> int | None:
-        """A client wrote `values` from `address`; an exception code refuses it (None: done)."""
-
-
-class ControllerServer:
-    """A pymodbus server answering from `source`, TCP or RTU, in a background thread.
-
-    Args:
-        source: the register source.
-        unit: the device id it answers.
-    """
-
-    def __init__(self, source: RegisterSource, *, unit: int = 1) -> None:
-        self.source = source
-        self.unit = unit
-        self.requests = 0
-        self._loop = asyncio.new_event_loop()
-        self._thread = threading.Thread(target=self._run, name="controller-peer", daemon=True)
-        self._thread.start()
-        self._server: ModbusTcpServer | ModbusSerialServer | None = None
-
-    def serve_tcp(self, port: int, host: str = "127.0.0.1") -> None:
-        """Listen on host:port (returns once listening)."""
-        self._call(self._start(lambda device: ModbusTcpServer(device, address=(host, port))))
-
-    def serve_rtu(self, device: str, baud: int = 115200) -> None:
-        """Serve Modbus RTU on a serial device (one end of a pty pair)."""
-        self._call(
-            self._start(
-                lambda simdevice: ModbusSerialServer(
-                    simdevice, port=device, baudrate=baud, parity="N", stopbits=1, bytesize=8
-                )
-            )
-        )
-
-    def stop(self) -> None:
-        """Stop serving: the listener and every connection closed; may serve again after."""
-        self._call(self._shutdown())
-
-    def close(self) -> None:
-        """Stop serving and end the thread; safe to call twice."""
-        if self._loop.is_closed() or not self._thread.is_alive():
-            return
-        self.stop()
-        self._loop.call_soon_threadsafe(self._loop.stop)
-        self._thread.join(START_TIMEOUT_S)
-
-    def __enter__(self) -> ControllerServer:
-        return self
-
-    def __exit__(self, *_: object) -> None:
-        self.close()
-
-    def _run(self) -> None:
-        asyncio.set_event_loop(self._loop)
-        try:
-            self._loop.run_forever()
-        finally:
-            self._loop.close()
-
-    def _call(self, coroutine) -> None:
-        asyncio.run_coroutine_threadsafe(coroutine, self._loop).result(START_TIMEOUT_S)
-
-    def _device(self) -> SimDevice:
-        def bits() -> list[SimData]:
-            return [SimData(address=0, count=BITS_PER_TABLE, values=False, datatype=DataType.BITS)]
-
-        def registers() -> list[SimData]:
-            return [SimData(address=0, count=REGISTERS_PER_TABLE, datatype=DataType.REGISTERS)]
-
-        return SimDevice(
-            id=self.unit,
-            simdata=(bits(), bits(), registers(), registers()),
-            action=self._action,
-        )
-
-    async def _start(self, make: Callable[[SimDevice], ModbusTcpServer | ModbusSerialServer]):
-        if self._server is not None:
-            raise RuntimeError("already serving")
-        server = make(self._device())
-        await server.serve_forever(background=True)
-        self._server = server
-
-    async def _shutdown(self) -> None:
-        server, self._server = self._server, None
-        if server is not None:
-            await server.shutdown()
-
-    async def _action(
-        self,
-        function_code: int,
-        start_address: int,
-        address: int,
-        count: int,
-        registers: list[int],
-        values: list[int] | list[bool] | None,
-    ) -> ExcCodes | None:
-        table = _TABLE_OF_FUNCTION[function_code]
-        if values is not None:
-            code = self.source.write(table, address, list(values))
-            return ExcCodes(code) if code else None
-        self.requests += 1
-        cells = self.source.image(table)
-        usable = len(registers) - 1
-        if table in BIT_TABLES:
-            # SimDevice keeps bits packed 16 to a register, bit 0 first.
-            for bit_address, bit in cells.items():
-                index, shift = divmod(bit_address, 16)
-                index -= start_address
-                if 0 <= index < usable:
-                    word = registers[index] & ~(1 << shift)
-                    registers[index] = word | (int(bool(bit)) << shift)
-        else:
-            for register_address, word in cells.items():
-                index = register_address - start_address
-                if 0 <= index < usable:
-                    registers[index] = int(word)
-        return None
 
 
 class TinyMachine:
@@ -237,6 +81,10 @@ class TinyMachine:
             "encoder_counts": round(position * self.counts_per_mm),
         }
 
+    def state(self) -> dict[str, float | bool]:
+        """The quantities of a register map's reads now."""
+        return self.state_at(self.clock())
+
     def start(self, speed_mm_min: float) -> None:
         self._change(speed_mm_min, None)
 
@@ -262,7 +110,7 @@ class TinyMachine:
         return moved
 
 
-class SimulatedController:
+class SimulatedController(MachineRegisters):
     """A live frame controller: `TinyMachine` served through `register_map`.
 
     Args:
@@ -273,67 +121,7 @@ class SimulatedController:
     def __init__(
         self, register_map: RegisterMap = GENERIC_CONTROLLER, machine: TinyMachine | None = None
     ) -> None:
-        self.register_map = register_map
-        self.machine = machine if machine is not None else TinyMachine()
-        self._lock = threading.Lock()
-        self._commands: list[tuple[str, float | bool]] = []
-        self._holding: dict[int, int] = {}
-        self.setpoint_mm_min = 0.0
-
-    def commands(self) -> list[tuple[str, float | bool]]:
-        """The commands and set points written so far, in order: (name, value)."""
-        with self._lock:
-            return list(self._commands)
-
-    def image(self, table: str) -> Mapping[int, int | bool]:
-        state = self.machine.state_at(self.machine.clock())
-        return self.register_map.register_image(state)[table]
-
-    def write(self, table: str, address: int, values: list[int] | list[bool]) -> int | None:
-        entries = self.register_map.entries()
-        if table == "coil":
-            for offset, value in enumerate(values):
-                for name in COMMANDS:
-                    entry = entries.get(name)
-                    if (
-                        entry is not None
-                        and entry.table == "coil"
-                        and entry.address == address + offset
-                    ):
-                        if value:
-                            self._command(name, True)
-            return None
-        if table != "holding":
-            return int(ExcCodes.ILLEGAL_ADDRESS)
-        for offset, word in enumerate(values):
-            self._holding[address + offset] = int(word)
-        written = range(address, address + len(values))
-        setpoint = entries.get("speed_setpoint_mm_min")
-        if setpoint is not None and setpoint.address in written and setpoint.end - 1 in written:
-            words = [self._holding[a] for a in range(setpoint.address, setpoint.end)]
-            self.setpoint_mm_min = float(setpoint.decode(words))
-            with self._lock:
-                self._commands.append(("speed_setpoint_mm_min", self.setpoint_mm_min))
-        for name in COMMANDS:
-            entry = entries.get(name)
-            if entry is None or entry.table != "holding" or entry.address not in written:
-                continue
-            if entry.end - 1 not in written:
-                continue
-            words = [self._holding[a] for a in range(entry.address, entry.end)]
-            if words == entry.command_words():
-                self._command(name, entry.value)
-        return None
-
-    def _command(self, name: str, value: float | bool | None) -> None:
-        with self._lock:
-            self._commands.append((name, value))
-        if name == "start":
-            self.machine.start(self.setpoint_mm_min)
-        elif name == "stop":
-            self.machine.stop()
-        else:
-            self.machine.return_to_start(self.setpoint_mm_min)
+        super().__init__(register_map, machine if machine is not None else TinyMachine())
 
 
 class RecordedController:

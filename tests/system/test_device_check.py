@@ -10,8 +10,9 @@ from pathlib import Path
 
 import pytest
 
+from appliance.sim.controller_server import ControllerServer
 from tests.system.aravis_peers import FakeGvCamera, needs_gige
-from tests.system.frame_controller_peers import ControllerServer, SimulatedController
+from tests.system.frame_controller_peers import SimulatedController
 from tests.system.modbus_peers import free_tcp_port
 
 EXTENSOMETER = str(Path(sys.executable).with_name("extensometer"))

@@ -26,8 +26,9 @@ import pytest
 from appliance.config import parse_config
 from appliance.loop import DeviceEvent
 from appliance.runner import run_test
+from appliance.sim.controller_server import ControllerServer
 from tests.system.aravis_peers import needs_gige, specimen_camera
-from tests.system.frame_controller_peers import ControllerServer, SimulatedController
+from tests.system.frame_controller_peers import SimulatedController
 from tests.system.modbus_peers import free_tcp_port
 
 pytestmark = needs_gige

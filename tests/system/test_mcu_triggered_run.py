@@ -89,3 +89,63 @@ def test_the_firmware_times_the_exposures_of_a_simulated_test(binaries, tmp_path
     steps = np.round(intervals / period_s)
     assert np.all(steps >= 1)
     assert np.max(np.abs(intervals - steps * period_s)) < 1e-3
+
+
+@needs_mbpoll
+def test_the_whole_chain_follows_a_speed_change_over_modbus_and_the_firmware(binaries, tmp_path):
+    """Simulated frame behind Modbus TCP, firmware under simavr re-timed on the way, the
+    simulated camera on its triggers, the strain on the Modbus server."""
+    port = free_tcp_port()
+    with SimulatedMcu(binaries["elf"], binaries["harness"], tmp_path / "mcu") as mcu:
+        config = tmp_path / "run.toml"
+        config.write_text(
+            f'[trigger]\nsource = "period"\nurl = "{mcu.port}"\n'
+            "[run]\nspeed_mm_min = 100\n"
+            '[sim]\nrealtime = true\ncontroller = "modbus-tcp"\n'
+            "sensor_width_px = 512\nsensor_height_px = 1024\n"
+            "speed_change_after_s = 2.0\nspeed_change_mm_min = 3000\n"
+            f'[modbus]\ntcp = "127.0.0.1:{port}"\n'
+        )
+        process = subprocess.Popen(
+            [EXTENSOMETER, "run", "--sim", "--config", str(config), "--until-strain", "0.3"]
+            + ["--json", "--out", str(tmp_path / "out")],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        served = []
+        try:
+            while process.poll() is None and not served:
+                strain = printed_values(
+                    mbpoll_tcp(port, "-1", "-r", "0", "-c", "2", "-t", "4:float", "-B").stdout
+                ).get(0)
+                bits = printed_values(
+                    mbpoll_tcp(port, "-1", "-r", "10", "-c", "1", "-t", "4").stdout
+                )
+                if strain and bits.get(10) and int(bits[10]) & 1 and float(strain) > 0.01:
+                    served.append(float(strain))
+                time.sleep(0.05)
+            stdout, stderr = process.communicate(timeout=180)
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.communicate()
+        rises = np.array([ns for ns, _, level in mcu.edges() if level == 1], dtype=np.int64)
+    assert process.returncode == 0, stderr
+    summary = json.loads(stdout)
+    assert served and 0.01 < served[0] < 0.35, "no valid strain was read over Modbus"
+    assert summary["exit_status"] == "completed"
+    assert summary["frame_url"].startswith("modbus-tcp://127.0.0.1:")
+    assert summary["frames_without_controller"] == 0
+    assert summary["mcu_triggers_without_time"] == 0
+    assert summary["replan_failures"] == 0 and summary["replans"]
+    assert summary["max_abs_strain_error"] <= 5e-4
+    first_ticks = summary["trigger_period_ticks"]
+    last_ticks = summary["replans"][-1]["period_ticks"]
+    assert last_ticks < first_ticks
+    intervals_ticks = np.diff(rises) / 500.0
+    assert abs(intervals_ticks[0] - first_ticks) <= 1
+    assert abs(intervals_ticks[-1] - last_ticks) <= 1
+    spacings = {round(t) for t in intervals_ticks}
+    planned = {first_ticks} | {r["period_ticks"] for r in summary["replans"]}
+    assert all(min(abs(s - p) for p in planned) <= 1 for s in spacings), (spacings, planned)

@@ -16,6 +16,7 @@ from collections.abc import Iterator
 
 import pytest
 
+from appliance.sim.controller_server import ControllerServer
 from hal.errors import (
     HardwareConfigError,
     HardwareConnectError,
@@ -28,7 +29,6 @@ from hal.frame.register_map import GENERIC_CONTROLLER, RegisterMap
 from hal.registry import frame_from_url
 from tests.system.frame_controller_peers import (
     RECORDED_MAP,
-    ControllerServer,
     GarbageRtuPeer,
     RecordedController,
     SilentTcpPeer,

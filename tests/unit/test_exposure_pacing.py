@@ -27,8 +27,8 @@ def _plan(speed_mm_min: float):
     return plan_triggers(exposure, tick_hz=TICK_HZ)
 
 
-def _reading(speed_mm_min: float, t_s: float) -> FrameState:
-    return FrameState(0.0, speed_mm_min, 0.0, True, round(t_s * 1e9))
+def _reading(speed_mm_min: float) -> FrameState:
+    return FrameState(0.0, speed_mm_min, 0.0, True, 0)
 
 
 @pytest.fixture
@@ -51,9 +51,9 @@ def test_a_faster_speed_shortens_the_exposure_and_the_period_from_the_last_edge(
     )
     edges = [trigger.next_edge_s(-1.0)]
     edges.append(trigger.next_edge_s(edges[-1]))
-    pacer.follow(_reading(52.0, 0.1))
+    pacer.follow(0.1, _reading(52.0))
     assert pacer.replans == []
-    pacer.follow(_reading(200.0, 0.2))
+    pacer.follow(0.2, _reading(200.0))
     [replan] = pacer.replans
     wanted = _plan(200.0 * 1.1)
     assert replan.error == "" and replan.period_ticks == wanted.period_ticks
@@ -84,14 +84,14 @@ def test_a_plan_that_cannot_be_made_or_applied_keeps_the_one_in_force(devices):
         exposure_us=first.exposure_us,
         on_replan=told.append,
     )
-    pacer.follow(_reading(500.0, 1.0))
+    pacer.follow(1.0, _reading(500.0))
     assert pacer.failures == 1 and "does not fit" in told[0].error
     assert "plan in force kept" in told[0].describe()
     trigger.disarm()
     refused = ExposurePacer(
         _plan, TriggerReplanner(50.0), camera, trigger, exposure_us=first.exposure_us
     )
-    refused.follow(_reading(500.0, 1.0))
+    refused.follow(1.0, _reading(500.0))
     assert refused.failures == 1 and "disarmed" in refused.replans[0].error
     camera.arm()
     assert camera.fetch(1.0).exposure_us == pytest.approx(first.exposure_us)
@@ -102,7 +102,7 @@ def test_no_reading_or_standing_still_changes_nothing(devices):
     pacer = ExposurePacer(
         _plan, TriggerReplanner(50.0), camera, trigger, exposure_us=first.exposure_us
     )
-    pacer.follow(None)
-    pacer.follow(_reading(0.0, 5.0))
-    pacer.follow(_reading(float("nan"), 6.0))
+    pacer.follow(4.0, None)
+    pacer.follow(5.0, _reading(0.0))
+    pacer.follow(6.0, _reading(float("nan")))
     assert pacer.replans == []
