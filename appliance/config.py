@@ -94,9 +94,11 @@ class TriggerConfig:
     frame-to-frame travel (`appliance.trigger_plan`). The simulated test has a simulated
     microcontroller on the simulated machine's encoder (`encoder_counts_per_mm`).
     `pulse_width_us` is the trigger pulse's width. `url` names the real microcontroller's
-    serial port (a device path or pyserial URL); empty = the simulated one. In this version
-    the real microcontroller times the simulated camera in a real-time simulated test
-    (`appliance.mcu_trigger`).
+    serial port (a device path or pyserial URL); empty = the simulated one (simulated test
+    only). A real camera on its output is triggered on its trigger line (EXTERNAL) and its
+    frames are matched to the TRIGGER events and stamped with their times
+    (`appliance.trigger_stamping`); in a real-time simulated test it times the simulated
+    camera (`appliance.mcu_trigger`).
 
     While the test runs, exposure and trigger spacing follow the crosshead speed the
     controller reports (`appliance.exposure_pacing`): a speed more than `replan_hysteresis`

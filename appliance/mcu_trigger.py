@@ -46,13 +46,14 @@ class McuTriggerLine:
         self.events: list[TriggerEvent] = []
         self.unstamped = 0
 
-    def start(self, plan: TriggerPlan) -> None:
-        """Send the plan to the firmware and arm it."""
+    def start(self, plan: TriggerPlan, *, start_tick: int = 0) -> None:
+        """Send the plan to the firmware and arm it; the first pulse at `start_tick` (0 = as
+        soon as armed)."""
         if plan.source == "encoder":
             source, period, divisor = TriggerSource.ENCODER, 0, plan.encoder_divisor
         else:
             source, period, divisor = TriggerSource.PERIOD, plan.period_ticks, 1
-        self.link.configure(source, plan.pulse_width_ticks, period, divisor)
+        self.link.configure(source, plan.pulse_width_ticks, period, divisor, start_tick=start_tick)
         self.link.arm()
 
     def retime(self, plan: TriggerPlan) -> None:

@@ -8,7 +8,9 @@ messages of one frame can be gathered from every channel. Per frame, in this ord
 * `/camera/window/<k>` (protobuf `foxglove.RawImage`): the pixels mark k's tracking read;
 * `/camera/full` (`foxglove.RawImage`): the whole frame at the configured rate, and the
   reference frame;
-* `/camera/trigger` (JSON): what started the exposure (frame id, device time, exposure, mode);
+* `/camera/trigger` (JSON): what started the exposure (frame id, time, exposure, mode; with
+  the trigger microcontroller also the trigger's sequence number and tick, and the camera's
+  own timestamp when the frame was stamped with its trigger's time);
 * `/frame/state` (JSON): the controller's state read with the frame (crosshead, speed, force);
 * `/tracking/points` (JSON): every point's position, displacement, shape parameters, ZNCC and
   status, and where the windows lie;
@@ -81,6 +83,8 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
             "exposure_us": _NUMBER,
             "mode": {"type": "string"},
             "sequence": {"type": ["integer", "null"]},
+            "tick": {"type": ["integer", "null"]},
+            "device_timestamp_ns": {"type": ["integer", "null"]},
         },
     },
     "extensometer.FrameState": {
@@ -322,6 +326,10 @@ def trigger_record(sample: StrainSample, mode: str) -> dict[str, Any]:
         "exposure_us": sample.exposure_us,
         "mode": mode,
         "sequence": trigger.get("sequence"),
+        "tick": trigger.get("tick"),
+        "device_timestamp_ns": sample.metadata.get("device_timestamp_ns")
+        if sample.metadata
+        else None,
     }
 
 

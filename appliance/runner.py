@@ -287,7 +287,8 @@ def _check_trigger_mcu_config(config: Config) -> None:
 
 
 def _connect_trigger_mcu(config: Config, world: Any) -> Any:
-    """The real trigger microcontroller at `[trigger] url`, wired to the simulated camera."""
+    """The real trigger microcontroller at `[trigger] url`, wired to the simulated camera of
+    `world` (None: a real camera on its output)."""
     from appliance.mcu_trigger import McuTriggerLine
     from firmware_bridge.link import FirmwareError, McuLink
 
@@ -300,6 +301,8 @@ def _connect_trigger_mcu(config: Config, world: Any) -> Any:
             raise
     except FirmwareError as exc:
         raise InputError(f"[trigger] url: {config.trigger.url}: {exc}") from None
+    if world is None:
+        return McuTriggerLine(link, lambda host_ns: host_ns * 1e-9)
     line = McuTriggerLine(link, lambda host_ns: world.clock.at_wall_s(host_ns * 1e-9))
     world.camera.wire_trigger_input(line)
     return line
@@ -311,12 +314,14 @@ def _hardware_rig(config: Config) -> _Rig:
     for key, url in (("[camera] url", config.camera.url), ("[frame] url", config.frame.url)):
         if url.startswith("sim://"):
             raise InputError(f"{key}: {url} is simulated: run with --sim, or name a real device")
-    camera = camera_from_url(config.camera.url)
-    if config.trigger.source != "internal":
+    if config.trigger.source != "internal" and not config.trigger.url:
         raise InputError(
-            f"[trigger] source: {config.trigger.source!r} needs the trigger microcontroller, "
-            "which this version drives in the simulated test only"
+            f"[trigger] url: required with a real camera and [trigger] source "
+            f"{config.trigger.source!r} (the trigger microcontroller's serial port)"
         )
+    if config.trigger.source == "internal" and config.trigger.url:
+        raise InputError("[trigger] url: set, but [trigger] source is internal")
+    camera = camera_from_url(config.camera.url)
     optics = configured_optics(config, None)
     if config.gauge.length_mm is None:
         raise InputError("[gauge] length_mm: required with a real specimen")
@@ -360,12 +365,6 @@ def _prepare_triggers(
     if source == "internal":
         camera.prepare(TriggerInfo(mode=TriggerMode.INTERNAL, rate_hz=1.0 / plan.frame_period_s))
         return None
-    if rig.world is None:
-        raise InputError(
-            f"[trigger] source: {source!r} needs the trigger microcontroller, which this "
-            "version drives in the simulated test only"
-        )
-    controller = rig.world.trigger
     if config.trigger.url:
         rig.mcu_line = _connect_trigger_mcu(config, rig.world)
     tick_hz = _trigger_tick_hz(rig)
@@ -379,9 +378,15 @@ def _prepare_triggers(
     except ValueError as exc:
         raise InputError(f"[trigger] pulse_width_us: {exc}") from None
     camera.prepare(TriggerInfo(mode=TriggerMode.EXTERNAL))
+    if rig.world is None:
+        from appliance.trigger_stamping import TriggerStampedCamera
+
+        rig.camera = TriggerStampedCamera(camera, rig.mcu_line, triggers)
+        return triggers
     if rig.mcu_line is not None:
         rig.mcu_line.start(triggers)
         return triggers
+    controller = rig.world.trigger
     controller.configure(triggers)
     controller.arm(rig.world.clock.now_s())
     return triggers
@@ -551,6 +556,7 @@ def run_test(
                 if simulate
                 else None
             ),
+            trigger_mode=config.trigger.source,
         )
     every_output: list[RunOutput] = ([recorder] if recorder is not None else []) + list(outputs)
     listeners = [on_transition] if on_transition is not None else []
@@ -576,7 +582,7 @@ def run_test(
             )
         )
         triggers = _prepare_triggers(config, rig, plan, camera)
-        mcu_line = rig.mcu_line
+        camera, mcu_line = rig.camera, rig.mcu_line
         pacer = _exposure_pacer(config, rig, camera, in_force.exposure_us, recorder, progress)
     except BaseException:
         if recorder is not None:
@@ -740,7 +746,7 @@ def run_test(
     if pacer is not None:
         extra["replans"] = [dataclasses.asdict(replan) for replan in pacer.replans]
         extra["replan_failures"] = pacer.failures
-    if mcu_line is not None:
+    if mcu_line is not None and rig.world is not None:
         extra["mcu_triggers"] = len(mcu_line.events)
         extra["mcu_triggers_without_time"] = mcu_line.unstamped
     for output in every_output:

@@ -306,6 +306,7 @@ def specimen_camera(
     max_strain: float = 0.1,
     hold_s: float = 0.0,
     seed: int = 7,
+    trigger_wire: Path | None = None,
     timeout_s: float = 60.0,
 ) -> Iterator[SpecimenCamera]:
     """Run the specimen camera program until the block ends (then SIGTERM; it must exit 0).
@@ -319,6 +320,8 @@ def specimen_camera(
         max_strain: strain at which the stretch stops growing.
         hold_s: seconds at zero strain after the first frame before stretching starts.
         seed: seed of the speckle pattern.
+        trigger_wire: a firmware edge log whose trigger pulses trigger the camera (see
+            `tests.system.gv_specimen_camera`); None = no wire.
         timeout_s: how long to wait for its READY line.
     """
     ensure_loopback_address(address)
@@ -344,6 +347,7 @@ def specimen_camera(
         str(seed),
         "--truth",
         str(truth_path),
+        *(["--trigger-wire", str(trigger_wire)] if trigger_wire is not None else []),
     ]
     environment = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
     process = subprocess.Popen(

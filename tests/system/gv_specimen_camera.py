@@ -40,6 +40,18 @@ leader, so a frame received through ``hal.camera.aravis.AravisCamera`` has
 clock, microsecond resolution) and ``metadata["device_frame_id"]`` equal to its
 ``frame_id`` (16 bits, wrapping after 65535 to 1; the timestamp is the unambiguous key).
 
+Trigger wire (``--trigger-wire EDGE_LOG``): Aravis' fake camera has no line input; in trigger
+mode it sends a frame only when its software trigger register is set (it looks every
+millisecond: its trigger frequency is set to 1 kHz). The wire follows the edge log of the
+trigger firmware under simavr (``firmware_bridge.simulator``; one line per pin change, written
+as it happens) and sets that register at every rising edge of the trigger output PB1, so the
+camera exposes on the firmware's pulses as a camera on a trigger cable would (a pulse while
+the last one is not taken yet is lost, as a busy camera ignores one). The client selects
+``TriggerSource = Software`` as the camera's trigger line (``aravis://...?trigger_line=Software``
+with EXTERNAL triggering) and never sends a software trigger itself. The latency from edge to
+exposure (the log, this process's polling, the camera's millisecond) is a few ms; frames keep
+their device timestamps, so the truth log stays exact.
+
 Why ctypes: setting the fill pattern through PyGObject with a Python callback crashes, so
 ``arv_fake_camera_set_fill_pattern`` is called through ctypes on the GvFakeCamera's
 underlying ArvFakeCamera, with a ctypes callback kept referenced for the camera's life. The
@@ -55,6 +67,7 @@ import json
 import signal
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import IO, Any
 
@@ -207,6 +220,45 @@ class SpecimenFill:
         ctypes.memmove(destination, pixels.ctypes.data, pixels.nbytes)
 
 
+TRIGGER_SOFTWARE_REGISTER = 0x30C
+"""The fake camera's TriggerSoftware command register (ARV_FAKE_CAMERA_REGISTER_TRIGGER_
+SOFTWARE in arvfakecamera.h)."""
+
+
+class TriggerWire:
+    """Presses the fake camera's trigger at every rising edge of PB1 in a firmware edge log."""
+
+    def __init__(self, fake_camera: Any, edge_log: Path, stop: threading.Event) -> None:
+        self.fake_camera = fake_camera
+        self.edge_log = edge_log
+        self.stop = stop
+        self.pressed = 0
+        self.thread = threading.Thread(target=self._follow, name="trigger-wire", daemon=True)
+
+    def start(self) -> None:
+        self.fake_camera.set_trigger_frequency(1000.0)
+        self.thread.start()
+
+    def _follow(self) -> None:
+        while not self.edge_log.exists():
+            if self.stop.wait(0.01):
+                return
+        with self.edge_log.open(encoding="ascii", errors="replace") as log:
+            pending = ""
+            while not self.stop.is_set():
+                chunk = log.readline()
+                if not chunk:
+                    time.sleep(0.001)
+                    continue
+                pending += chunk
+                if not pending.endswith("\n"):
+                    continue
+                fields, pending = pending.split(), ""
+                if len(fields) == 3 and fields[1] == "PB1" and fields[2] == "1":
+                    self.fake_camera.write_register(TRIGGER_SOFTWARE_REGISTER, 1)
+                    self.pressed += 1
+
+
 def _arguments(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="python -m tests.system.gv_specimen_camera",
@@ -225,6 +277,9 @@ def _arguments(argv: list[str] | None) -> argparse.Namespace:
     )
     parser.add_argument("--seed", type=int, default=7, help="seed of the speckle pattern")
     parser.add_argument("--truth", type=Path, required=True, help="truth log (JSON lines)")
+    parser.add_argument(
+        "--trigger-wire", type=Path, help="firmware edge log whose PB1 pulses trigger the camera"
+    )
     arguments = parser.parse_args(argv)
     if arguments.width < 16 or arguments.height < 16:
         parser.error("--width and --height must be >= 16")
@@ -297,6 +352,8 @@ def main(argv: list[str] | None = None) -> int:
             fake_camera.write_register(register, value)
         pointer = _fake_camera_pointer(fake_camera)
         library.arv_fake_camera_set_fill_pattern(pointer, fill.callback, None)
+        if arguments.trigger_wire is not None:
+            TriggerWire(fake_camera, arguments.trigger_wire, stop).start()
         print(
             f"READY {arguments.address} {arguments.serial} {arguments.width}x{arguments.height}",
             flush=True,
