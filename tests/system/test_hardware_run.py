@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 import subprocess
 import sys
 import threading
@@ -25,6 +26,7 @@ import pytest
 
 from appliance.config import parse_config
 from appliance.loop import DeviceEvent
+from appliance.recording_reader import RecordingReader
 from appliance.runner import run_test
 from appliance.sim.controller_server import ControllerServer
 from firmware_bridge.simulator import SimulatedMcu
@@ -177,19 +179,24 @@ def test_a_camera_that_goes_away_mid_test_is_waited_for_and_the_test_goes_on(tmp
     assert all(b > a for a, b in zip(stamps, stamps[1:], strict=False))
 
 
+def _niced() -> None:
+    os.nice(10)
+
+
 def test_a_gige_camera_on_the_firmware_s_trigger_output_is_stamped_with_its_triggers(tmp_path):
     """The specimen camera exposes on the pulses of the trigger firmware under simavr (its
     trigger wire follows the firmware's output pin); every frame is matched to its TRIGGER
-    by sequence and carries the trigger's clock-synced host time."""
+    by sequence and carries the trigger's clock-synced host time. The emulated
+    microcontroller stands for a chip of its own: `extensometer run` is niced so that, on a
+    2-core machine, it does not starve the emulation's wall-clock pacing."""
     binaries = firmware_binaries()
     controller = SimulatedController()
     port = free_tcp_port()
-    samples = []
     with (
         SimulatedMcu(binaries["elf"], binaries["harness"], tmp_path / "mcu") as mcu,
         specimen_camera(
             tmp_path / "truth.jsonl",
-            strain_rate_per_s=0.02,
+            strain_rate_per_s=0.015,
             max_strain=0.08,
             hold_s=0.5,
             trigger_wire=mcu.edge_log,
@@ -197,39 +204,56 @@ def test_a_gige_camera_on_the_firmware_s_trigger_output_is_stamped_with_its_trig
         ControllerServer(controller) as server,
     ):
         server.serve_tcp(port)
-        config = parse_config(
+        config = tmp_path / "run.toml"
+        config.write_text(
             _config_text(
                 f"{camera.url}?trigger_line=Software",
                 f"modbus-tcp://127.0.0.1:{port}",
+                camera=f'url = "{camera.url}?trigger_line=Software"\n'
+                "exposure_us = 1000\nframe_rate_hz = 10",
                 run="speed_mm_min = 30.0\nuntil_break = false\nuntil_strain = 0.02",
                 trigger=f'source = "period"\nurl = "{mcu.port}"',
             )
         )
-        outcome = run_test(config, simulate=False, immediate_sinks=[samples.append])
+        record = tmp_path / "test.mcap"
+        done = subprocess.run(
+            [sys.executable, "-m", "appliance.cli", "run", "--config", str(config)]
+            + ["--record", str(record), "--json"],
+            capture_output=True,
+            text=True,
+            timeout=180,
+            preexec_fn=_niced,
+        )
         rises = [ns for ns, _, level in mcu.edges() if level == 1]
         truth = camera.truth()
-    summary = outcome.as_dict()
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(done.stdout)
     assert summary["exit_status"] == "completed", summary["reason"]
+    reader = RecordingReader(record)
+    samples = list(reader.samples())
     statistics = summary["camera_statistics"]
-    assert statistics["frames_matched_to_triggers"] >= len(samples) + 1 >= 15
-    # The fake camera, rendering in Python on a loaded machine, misses a pulse now and then.
-    assert statistics["frames_without_trigger"] + statistics["trigger_resyncs"] <= len(samples) // 4
-    sequences = np.array([s.metadata["trigger"]["sequence"] for s in samples])
+    assert statistics["frames_matched_to_triggers"] >= len(samples) + 1 >= 12
+    # The fake camera renders in Python: now and then it misses a pulse.
+    slips = statistics["frames_without_trigger"] + statistics["trigger_resyncs"]
+    assert slips <= len(samples) // 3, statistics
+    triggers = [sample.trigger for sample in samples]
+    assert all(t is not None and t["mode"] == "period" for t in triggers)
+    sequences = np.array([t["sequence"] for t in triggers])
     assert np.all(np.diff(sequences) >= 1) and sequences[0] >= 2
-    stamps = np.array([s.timestamp_ns for s in samples], dtype=np.int64)
-    device = np.array([s.metadata["device_timestamp_ns"] for s in samples], dtype=np.int64)
+    stamps = np.array([t["timestamp_ns"] for t in triggers], dtype=np.int64)
+    device = np.array([t["device_timestamp_ns"] for t in triggers], dtype=np.int64)
     edges = np.array(rises, dtype=np.int64)[sequences - 1]
-    # A frame matched to the wrong trigger would be a whole period (50 ms) off its edge. The
-    # stamps follow the edges to the clock fit's error (simavr, paced to the wall clock on a
-    # busy machine, slips now and then); the camera's own stamps carry the wire's latency.
+    # A frame matched to the wrong trigger would be a whole period (100 ms) off its edge. The
+    # stamps follow the edges to the clock fit's error; the camera's own stamps carry the
+    # wire's latency.
     stamp_error = np.abs(np.diff(stamps) - np.diff(edges))
     device_error = np.abs(np.diff(device) - np.diff(edges))
     assert np.max(stamp_error) < 25e6, np.max(stamp_error)
     assert np.median(stamp_error) < 0.5e6, np.median(stamp_error)
     assert np.median(device_error) > np.median(stamp_error)
     errors = [
-        sample.reading.engineering_strain
-        - truth.record(timestamp_ns=sample.metadata["device_timestamp_ns"]).strain
-        for sample in samples
+        sample.strain["engineering_strain"]
+        - truth.record(timestamp_ns=t["device_timestamp_ns"]).strain
+        for sample, t in zip(samples, triggers, strict=True)
     ]
     assert np.max(np.abs(errors)) < 3e-4, f"worst strain error {np.max(np.abs(errors)):.2e}"

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import subprocess
 import sys
 import time
@@ -23,6 +24,12 @@ from tests.system.firmware_peers import firmware_binaries
 from tests.system.modbus_peers import free_tcp_port, mbpoll_tcp, needs_mbpoll, printed_values
 
 EXTENSOMETER = str(Path(sys.executable).with_name("extensometer"))
+
+
+def _niced() -> None:
+    """The emulated microcontroller stands for a chip of its own: the appliance runs niced so
+    that, on a 2-core machine, it does not starve the emulation's wall-clock pacing."""
+    os.nice(10)
 
 
 @pytest.fixture(scope="module")
@@ -56,6 +63,7 @@ def test_the_firmware_times_the_exposures_of_a_simulated_test(binaries, tmp_path
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
+            preexec_fn=_niced,
         )
         served = []
         try:
@@ -88,7 +96,11 @@ def test_the_firmware_times_the_exposures_of_a_simulated_test(binaries, tmp_path
     intervals = np.diff([float(r["time_s"]) for r in rows])
     steps = np.round(intervals / period_s)
     assert np.all(steps >= 1)
-    assert np.max(np.abs(intervals - steps * period_s)) < 1e-3
+    # Frames lie on the trigger grid: an extra or a missing trigger would be a period (50 ms)
+    # off. Host times follow the clock fit, which follows simavr's wall-clock pacing; on a
+    # loaded machine the pacing lags by a millisecond or two now and then.
+    off_grid = np.abs(intervals - steps * period_s)
+    assert np.median(off_grid) < 1e-4 and np.max(off_grid) < 5e-3, off_grid
 
 
 @needs_mbpoll
@@ -112,6 +124,7 @@ def test_the_whole_chain_follows_a_speed_change_over_modbus_and_the_firmware(bin
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
+            preexec_fn=_niced,
         )
         served = []
         try:
