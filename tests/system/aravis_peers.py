@@ -182,6 +182,8 @@ class TruthRecord:
         strain: true engineering strain of the specimen in this frame (along y, about the centre).
         region: (x, y, width, height) of the sensor region rendered.
         pixel_format: name of the pixel format rendered (Mono8 or Mono16).
+        trigger_edge: with a trigger wire, the number of the firmware pulse (rising edge of
+            the edge log, from 1) the frame answers; None without.
     """
 
     frame_id: int
@@ -189,6 +191,7 @@ class TruthRecord:
     strain: float
     region: tuple[int, int, int, int]
     pixel_format: str
+    trigger_edge: int | None = None
 
 
 class SpecimenTruth:
@@ -226,6 +229,7 @@ class SpecimenTruth:
                     strain=float(entry["strain"]),
                     region=tuple(entry["region"]),
                     pixel_format=str(entry["pixel_format"]),
+                    trigger_edge=entry.get("trigger_edge"),
                 )
                 by_timestamp[record.timestamp_ns] = record
                 by_frame_id[record.frame_id] = record
@@ -307,6 +311,7 @@ def specimen_camera(
     hold_s: float = 0.0,
     seed: int = 7,
     trigger_wire: Path | None = None,
+    niceness: int = 0,
     timeout_s: float = 60.0,
 ) -> Iterator[SpecimenCamera]:
     """Run the specimen camera program until the block ends (then SIGTERM; it must exit 0).
@@ -322,6 +327,7 @@ def specimen_camera(
         seed: seed of the speckle pattern.
         trigger_wire: a firmware edge log whose trigger pulses trigger the camera (see
             `tests.system.gv_specimen_camera`); None = no wire.
+        niceness: added to the program's nice value (leaves CPU to an emulated device).
         timeout_s: how long to wait for its READY line.
     """
     ensure_loopback_address(address)
@@ -351,7 +357,12 @@ def specimen_camera(
     ]
     environment = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
     process = subprocess.Popen(
-        command, stdout=subprocess.PIPE, text=True, cwd=REPO_ROOT, env=environment
+        command,
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=REPO_ROOT,
+        env=environment,
+        preexec_fn=(lambda: os.nice(niceness)) if niceness else None,
     )
     try:
         _read_ready(process, timeout_s)

@@ -30,7 +30,9 @@ The truth log (JSON lines, flushed line by line): a header ``{"kind": "header", 
 the parameters, then one record per rendered frame, written before the frame is sent::
 
     {"frame_id": 65401, "timestamp_ns": ..., "strain": ..., "region": [x, y, w, h],
-     "pixel_format": "Mono8"}
+     "pixel_format": "Mono8", "trigger_edge": null}
+
+(``trigger_edge``: with a trigger wire, the number of the firmware pulse the frame answers.)
 
 The mapping to received frames is exact: Aravis' fake camera sets the buffer's frame id and
 timestamp before it calls the fill pattern (the callback reads them through
@@ -180,6 +182,7 @@ class SpecimenFill:
         self._max = max_strain
         self._hold_s = hold_s
         self._t0_ns: int | None = None
+        self.wire: TriggerWire | None = None
         self.callback = FillPattern(self._fill)
 
     def strain_at(self, timestamp_ns: int) -> float:
@@ -214,6 +217,7 @@ class SpecimenFill:
             "strain": strain,
             "region": [x, y, width, height],
             "pixel_format": name,
+            "trigger_edge": self.wire.take() if self.wire is not None else None,
         }
         self._truth.write(json.dumps(record) + "\n")
         self._truth.flush()
@@ -226,14 +230,28 @@ SOFTWARE in arvfakecamera.h)."""
 
 
 class TriggerWire:
-    """Presses the fake camera's trigger at every rising edge of PB1 in a firmware edge log."""
+    """Presses the fake camera's trigger at every rising edge of PB1 in a firmware edge log.
+
+    Each press is numbered (1 = the first rising edge of the log, i.e. the firmware's
+    TRIGGER sequence number when it was armed once) and queued; the fill pattern `take`s the
+    queue when it renders a frame: the frame answers the earliest press, later ones were lost
+    while the camera was busy.
+    """
 
     def __init__(self, fake_camera: Any, edge_log: Path, stop: threading.Event) -> None:
         self.fake_camera = fake_camera
         self.edge_log = edge_log
         self.stop = stop
         self.pressed = 0
+        self._pending: list[int] = []
+        self._lock = threading.Lock()
         self.thread = threading.Thread(target=self._follow, name="trigger-wire", daemon=True)
+
+    def take(self) -> int | None:
+        """The number of the earliest press not answered yet (None: none); clears them all."""
+        with self._lock:
+            pending, self._pending = self._pending, []
+        return pending[0] if pending else None
 
     def start(self) -> None:
         self.fake_camera.set_trigger_frequency(1000.0)
@@ -255,8 +273,10 @@ class TriggerWire:
                     continue
                 fields, pending = pending.split(), ""
                 if len(fields) == 3 and fields[1] == "PB1" and fields[2] == "1":
-                    self.fake_camera.write_register(TRIGGER_SOFTWARE_REGISTER, 1)
                     self.pressed += 1
+                    with self._lock:
+                        self._pending.append(self.pressed)
+                    self.fake_camera.write_register(TRIGGER_SOFTWARE_REGISTER, 1)
 
 
 def _arguments(argv: list[str] | None) -> argparse.Namespace:
@@ -353,7 +373,8 @@ def main(argv: list[str] | None = None) -> int:
         pointer = _fake_camera_pointer(fake_camera)
         library.arv_fake_camera_set_fill_pattern(pointer, fill.callback, None)
         if arguments.trigger_wire is not None:
-            TriggerWire(fake_camera, arguments.trigger_wire, stop).start()
+            fill.wire = TriggerWire(fake_camera, arguments.trigger_wire, stop)
+            fill.wire.start()
         print(
             f"READY {arguments.address} {arguments.serial} {arguments.width}x{arguments.height}",
             flush=True,
