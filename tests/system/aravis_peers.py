@@ -311,6 +311,7 @@ def specimen_camera(
     hold_s: float = 0.0,
     seed: int = 7,
     trigger_wire: Path | None = None,
+    miss_every: int = 0,
     niceness: int = 0,
     timeout_s: float = 60.0,
 ) -> Iterator[SpecimenCamera]:
@@ -327,6 +328,7 @@ def specimen_camera(
         seed: seed of the speckle pattern.
         trigger_wire: a firmware edge log whose trigger pulses trigger the camera (see
             `tests.system.gv_specimen_camera`); None = no wire.
+        miss_every: the wire drops every Nth pulse (0 = none).
         niceness: added to the program's nice value (leaves CPU to an emulated device).
         timeout_s: how long to wait for its READY line.
     """
@@ -354,6 +356,7 @@ def specimen_camera(
         "--truth",
         str(truth_path),
         *(["--trigger-wire", str(trigger_wire)] if trigger_wire is not None else []),
+        *(["--miss-every", str(miss_every)] if miss_every else []),
     ]
     environment = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
     process = subprocess.Popen(

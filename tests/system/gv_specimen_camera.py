@@ -235,13 +235,17 @@ class TriggerWire:
     Each press is numbered (1 = the first rising edge of the log, i.e. the firmware's
     TRIGGER sequence number when it was armed once) and queued; the fill pattern `take`s the
     queue when it renders a frame: the frame answers the earliest press, later ones were lost
-    while the camera was busy.
+    while the camera was busy. With `miss_every` = N, every Nth pulse is not passed on (a
+    camera that misses pulses, for the host's re-synchronisation).
     """
 
-    def __init__(self, fake_camera: Any, edge_log: Path, stop: threading.Event) -> None:
+    def __init__(
+        self, fake_camera: Any, edge_log: Path, stop: threading.Event, miss_every: int = 0
+    ) -> None:
         self.fake_camera = fake_camera
         self.edge_log = edge_log
         self.stop = stop
+        self.miss_every = miss_every
         self.pressed = 0
         self._pending: list[int] = []
         self._lock = threading.Lock()
@@ -274,6 +278,8 @@ class TriggerWire:
                 fields, pending = pending.split(), ""
                 if len(fields) == 3 and fields[1] == "PB1" and fields[2] == "1":
                     self.pressed += 1
+                    if self.miss_every and self.pressed % self.miss_every == 0:
+                        continue
                     with self._lock:
                         self._pending.append(self.pressed)
                     self.fake_camera.write_register(TRIGGER_SOFTWARE_REGISTER, 1)
@@ -299,6 +305,9 @@ def _arguments(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--truth", type=Path, required=True, help="truth log (JSON lines)")
     parser.add_argument(
         "--trigger-wire", type=Path, help="firmware edge log whose PB1 pulses trigger the camera"
+    )
+    parser.add_argument(
+        "--miss-every", type=int, default=0, help="the wire drops every Nth pulse (0 = none)"
     )
     arguments = parser.parse_args(argv)
     if arguments.width < 16 or arguments.height < 16:
@@ -329,6 +338,7 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, lambda *_: stop.set())
 
     specimen = StretchedSpecimen(arguments.width, arguments.height, arguments.seed)
+    specimen.render(0, 0, arguments.width, arguments.height, 0.0)
     library = _aravis_library()
     with arguments.truth.open("w", encoding="utf-8") as truth:
         header = {
@@ -373,7 +383,9 @@ def main(argv: list[str] | None = None) -> int:
         pointer = _fake_camera_pointer(fake_camera)
         library.arv_fake_camera_set_fill_pattern(pointer, fill.callback, None)
         if arguments.trigger_wire is not None:
-            fill.wire = TriggerWire(fake_camera, arguments.trigger_wire, stop)
+            fill.wire = TriggerWire(
+                fake_camera, arguments.trigger_wire, stop, miss_every=arguments.miss_every
+            )
             fill.wire.start()
         print(
             f"READY {arguments.address} {arguments.serial} {arguments.width}x{arguments.height}",

@@ -185,10 +185,11 @@ def _niced() -> None:
 
 def test_a_gige_camera_on_the_firmware_s_trigger_output_is_stamped_with_its_triggers(tmp_path):
     """The specimen camera exposes on the pulses of the trigger firmware under simavr (its
-    trigger wire follows the firmware's output pin); every frame is matched to its TRIGGER
-    by sequence and carries the trigger's clock-synced host time. The emulated
-    microcontroller stands for a chip of its own: `extensometer run` is niced so that, on a
-    2-core machine, it does not starve the emulation's wall-clock pacing."""
+    trigger wire follows the firmware's output pin and drops every 4th pulse); every frame
+    is matched to its TRIGGER by sequence and carries the trigger's clock-synced host time.
+    The emulated microcontroller stands for a chip of its own: `extensometer run` and the
+    camera are niced so that, on a 2-core machine, they do not starve the emulation's
+    wall-clock pacing."""
     binaries = firmware_binaries()
     controller = SimulatedController()
     port = free_tcp_port()
@@ -200,6 +201,7 @@ def test_a_gige_camera_on_the_firmware_s_trigger_output_is_stamped_with_its_trig
             max_strain=0.08,
             hold_s=0.5,
             trigger_wire=mcu.edge_log,
+            miss_every=4,
             niceness=10,
         ) as camera,
         ControllerServer(controller) as server,
@@ -236,9 +238,11 @@ def test_a_gige_camera_on_the_firmware_s_trigger_output_is_stamped_with_its_trig
     samples = list(reader.samples())
     statistics = summary["camera_statistics"]
     assert statistics["frames_matched_to_triggers"] >= len(samples) + 1 >= 10
-    # The fake camera renders in Python and misses a pulse now and then.
-    slips = statistics["frames_without_trigger"] + statistics["trigger_resyncs"]
-    assert slips <= len(samples) // 2, {k: v for k, v in statistics.items() if "trigger" in k}
+    # The wire drops every 4th pulse (and the fake, rendering in Python, misses one now and
+    # then): the numbering is re-synchronised each time.
+    counts = {k: v for k, v in statistics.items() if "trigger" in k}
+    assert statistics["trigger_resyncs"] >= len(samples) // 4 - 1, counts
+    assert statistics["frames_without_trigger"] <= len(samples) // 4, counts
     triggers = [sample.trigger for sample in samples]
     assert all(t is not None and t["mode"] == "period" for t in triggers)
     sequences = np.array([t["sequence"] for t in triggers])
@@ -257,7 +261,7 @@ def test_a_gige_camera_on_the_firmware_s_trigger_output_is_stamped_with_its_trig
     # error (simavr, short of CPU on 2 cores, falls behind its wall-clock pacing now and then,
     # which upsets the fit for a few frames); the camera's own stamps carry its latency.
     stamp_error = np.median(np.abs(stamp_s - trigger_s))
-    assert stamp_error < 5e-3 and np.median(np.abs(device_s - trigger_s)) > stamp_error
+    assert stamp_error < 20e-3 and np.median(np.abs(device_s - trigger_s)) > stamp_error
     errors = [
         sample.strain["engineering_strain"]
         - truth.record(timestamp_ns=t["device_timestamp_ns"]).strain
