@@ -97,10 +97,10 @@ def test_the_firmware_times_the_exposures_of_a_simulated_test(binaries, tmp_path
     assert np.all(steps >= 1)
     # Frames lie on the trigger grid: an extra or a missing trigger would be a period (50 ms)
     # off. Host times follow the clock fit, which follows simavr's wall-clock pacing; on a
-    # loaded machine the fit is off by some 0.1 ms and the pacing lags by a millisecond or two
-    # now and then.
+    # loaded machine the fit is off by some 0.1 ms and the pacing lags by up to ~10 ms now
+    # and then.
     off_grid = np.abs(intervals - steps * period_s)
-    assert np.median(off_grid) < 1e-3 and np.max(off_grid) < 5e-3, off_grid
+    assert np.median(off_grid) < 1e-3 and np.max(off_grid) < period_s / 4, off_grid
 
 
 @needs_mbpoll
