@@ -25,18 +25,22 @@ from hal.errors import HardwareFault
 
 
 class McuTriggerLine:
-    """The simulated camera's trigger input, fed by a real microcontroller's TRIGGER events.
+    """The real microcontroller's trigger as the appliance drives it: the plan sent and armed
+    (`start`), re-timed (`retime`), disarmed (`stop`); and, in a simulated test, the
+    simulated camera's trigger input fed by its TRIGGER events (`next_edge_s`). A real camera
+    on its output reads the events through `appliance.trigger_stamping` instead.
 
     Args:
         link: a connected link.
-        sim_s_of_host_ns: host monotonic ns -> simulation time, s.
+        sim_s_of_host_ns: host monotonic ns -> simulation time, s; None with a real camera
+            (then `next_edge_s` is not used).
         wait_s: longest wait for one edge.
     """
 
     def __init__(
         self,
         link: McuLink,
-        sim_s_of_host_ns: Callable[[int], float],
+        sim_s_of_host_ns: Callable[[int], float] | None = None,
         *,
         wait_s: float = 2.0,
     ) -> None:
@@ -74,7 +78,9 @@ class McuTriggerLine:
 
     def next_edge_s(self, after_s: float) -> float | None:
         """Simulation time of the next TRIGGER after `after_s`; None when none comes within
-        `wait_s`."""
+        `wait_s`. Raises RuntimeError without a simulation clock."""
+        if self.sim_s_of_host_ns is None:
+            raise RuntimeError("next_edge_s: this trigger line drives a real camera")
         deadline = time.monotonic() + self.wait_s
         while True:
             remaining = deadline - time.monotonic()

@@ -235,8 +235,7 @@ def _sim_rig(config: Config) -> _Rig:
         if g.centre_x_px is not None and g.centre_y_px is not None
         else world.specimen_centre_px
     )
-    if config.trigger.url:
-        _check_trigger_mcu_config(config)
+    _check_trigger_url(config, simulate=True)
     frame: TensileFrame = world.frame
     if config.sim.controller == "modbus-tcp":
         from appliance.sim.controller_server import ModbusServedFrame
@@ -278,11 +277,18 @@ def _release_trigger_mcu(rig: _Rig) -> None:
     rig.mcu_line = None
 
 
-def _check_trigger_mcu_config(config: Config) -> None:
-    """Refuse a `[trigger] url` the simulated test cannot use with it."""
-    if config.trigger.source == "internal":
+def _check_trigger_url(config: Config, *, simulate: bool) -> None:
+    """Refuse a `[trigger] url` that does not go with [trigger] source (a real camera needs
+    one for period and encoder triggering) or, in a simulated test, with [sim] realtime."""
+    trigger = config.trigger
+    if trigger.url and trigger.source == "internal":
         raise InputError("[trigger] url: set, but [trigger] source is internal")
-    if not config.sim.realtime:
+    if not trigger.url and trigger.source != "internal" and not simulate:
+        raise InputError(
+            f"[trigger] url: required with a real camera and [trigger] source "
+            f"{trigger.source!r} (the trigger microcontroller's serial port)"
+        )
+    if trigger.url and simulate and not config.sim.realtime:
         raise InputError("[trigger] url: the microcontroller runs in real time: set [sim] realtime")
 
 
@@ -302,7 +308,7 @@ def _connect_trigger_mcu(config: Config, world: Any) -> Any:
     except FirmwareError as exc:
         raise InputError(f"[trigger] url: {config.trigger.url}: {exc}") from None
     if world is None:
-        return McuTriggerLine(link, lambda host_ns: host_ns * 1e-9)
+        return McuTriggerLine(link)
     line = McuTriggerLine(link, lambda host_ns: world.clock.at_wall_s(host_ns * 1e-9))
     world.camera.wire_trigger_input(line)
     return line
@@ -314,13 +320,7 @@ def _hardware_rig(config: Config) -> _Rig:
     for key, url in (("[camera] url", config.camera.url), ("[frame] url", config.frame.url)):
         if url.startswith("sim://"):
             raise InputError(f"{key}: {url} is simulated: run with --sim, or name a real device")
-    if config.trigger.source != "internal" and not config.trigger.url:
-        raise InputError(
-            f"[trigger] url: required with a real camera and [trigger] source "
-            f"{config.trigger.source!r} (the trigger microcontroller's serial port)"
-        )
-    if config.trigger.source == "internal" and config.trigger.url:
-        raise InputError("[trigger] url: set, but [trigger] source is internal")
+    _check_trigger_url(config, simulate=False)
     camera = camera_from_url(config.camera.url)
     optics = configured_optics(config, None)
     if config.gauge.length_mm is None:
@@ -367,14 +367,8 @@ def _prepare_triggers(
         return None
     if config.trigger.url:
         rig.mcu_line = _connect_trigger_mcu(config, rig.world)
-    tick_hz = _trigger_tick_hz(rig)
     try:
-        triggers = plan_triggers(
-            plan,
-            tick_hz=tick_hz,
-            counts_per_mm=config.trigger.encoder_counts_per_mm if source == "encoder" else None,
-            pulse_width_us=config.trigger.pulse_width_us,
-        )
+        triggers = _trigger_plan(config, plan, _trigger_tick_hz(rig))
     except ValueError as exc:
         raise InputError(f"[trigger] pulse_width_us: {exc}") from None
     camera.prepare(TriggerInfo(mode=TriggerMode.EXTERNAL))
@@ -390,6 +384,18 @@ def _prepare_triggers(
     controller.configure(triggers)
     controller.arm(rig.world.clock.now_s())
     return triggers
+
+
+def _trigger_plan(config: Config, exposure: ExposurePlan, tick_hz: float) -> TriggerPlan:
+    """The trigger plan of an exposure plan for `[trigger]` (period or encoder source).
+    Raises ValueError when the pulse does not fit."""
+    encoder = config.trigger.source == "encoder"
+    return plan_triggers(
+        exposure,
+        tick_hz=tick_hz,
+        counts_per_mm=config.trigger.encoder_counts_per_mm if encoder else None,
+        pulse_width_us=config.trigger.pulse_width_us,
+    )
 
 
 def _trigger_tick_hz(rig: _Rig) -> float:
@@ -413,7 +419,6 @@ def _exposure_pacer(
         return None
     source = config.trigger.source
     timer = None
-    tick_hz = 1e6
     if source != "internal":
         timer = rig.mcu_line if rig.mcu_line is not None else rig.world.trigger
         tick_hz = _trigger_tick_hz(rig)
@@ -434,12 +439,7 @@ def _exposure_pacer(
                 exposure.frame_period_s,
                 speed_mm_min / 60.0 * exposure.frame_period_s,
             )
-        return plan_triggers(
-            exposure,
-            tick_hz=tick_hz,
-            counts_per_mm=config.trigger.encoder_counts_per_mm if source == "encoder" else None,
-            pulse_width_us=config.trigger.pulse_width_us,
-        )
+        return _trigger_plan(config, exposure, tick_hz)
 
     def tell(replan: Replan) -> None:
         if recorder is not None:

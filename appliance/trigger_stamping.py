@@ -64,8 +64,8 @@ class TriggerStampedCamera:
         line: the trigger microcontroller (connected; configured and armed by `arm`).
         plan: the trigger plan to arm with.
         wait_s: longest wait for a frame's TRIGGER event after the frame arrived.
-        tolerance_s: disagreement of a frame's device-time interval with its trigger-time
-            interval always accepted, s (a third of the interval is accepted too).
+        tolerance_s: smallest half-width of the latency window a match must fall in, s (a
+            third of the trigger spacing when that is larger).
         arm_lead_s: time from arming the camera to the first pulse, s.
     """
 
@@ -90,8 +90,7 @@ class TriggerStampedCamera:
         self.unmatched = 0
         self.resyncs = 0
         self._events: dict[int, TriggerEvent] = {}
-        self._last: tuple[int, int] | None = None
-        self._tick_of_last = 0
+        self._last: tuple[TriggerEvent, int] | None = None
         self._offsets: collections.deque[float] = collections.deque(maxlen=BASELINE_FRAMES)
         self._misses = 0
 
@@ -189,7 +188,7 @@ class TriggerStampedCamera:
 
     def _match(self, frame: Frame) -> TriggerEvent | None:
         last = self._last
-        expected = 1 if last is None else last[0] + max(1, frame.frame_id - last[1])
+        expected = 1 if last is None else last[0].trigger_seq + max(1, frame.frame_id - last[1])
         event = self._event(expected, time.monotonic() + self.wait_s)
         if self._offsets and last is not None:
             best = self._best_in_time(frame, expected, event)
@@ -202,8 +201,7 @@ class TriggerStampedCamera:
                 self._offsets.clear()
             return None
         self._misses = 0
-        self._last = (event.trigger_seq, frame.frame_id)
-        self._tick_of_last = event.tick
+        self._last = (event, frame.frame_id)
         self._offsets.append(self._offset_s(frame, event))
         for seq in [s for s in self._events if s <= event.trigger_seq]:
             del self._events[seq]
@@ -218,15 +216,15 @@ class TriggerStampedCamera:
     ) -> TriggerEvent | None:
         baseline = min(self._offsets)
         tick_hz = float(self.line.link.firmware.tick_hz)
-        previous = self._last
-        assert previous is not None
+        assert self._last is not None
+        previous = self._last[0]
 
         def latency_s(candidate: TriggerEvent) -> float:
             return self._offset_s(frame, candidate) - baseline
 
         def fits(candidate: TriggerEvent) -> bool:
-            steps = max(1, candidate.trigger_seq - previous[0])
-            spacing_s = (candidate.tick - self._tick_of_last) / tick_hz / steps
+            steps = max(1, candidate.trigger_seq - previous.trigger_seq)
+            spacing_s = (candidate.tick - previous.tick) / tick_hz / steps
             window = max(self.tolerance_s, spacing_s / 3.0)
             return -window <= latency_s(candidate) < max(self.tolerance_s, spacing_s - window)
 
@@ -236,7 +234,7 @@ class TriggerStampedCamera:
         candidates = [
             self._events[seq]
             for seq in range(expected - 1, expected + 1 + RESYNC_CANDIDATES)
-            if seq in self._events and seq > previous[0]
+            if seq in self._events and seq > previous.trigger_seq
         ]
         fitting = [c for c in candidates if fits(c)]
         return min(fitting, key=lambda c: abs(latency_s(c))) if fitting else None
