@@ -8,10 +8,14 @@ The decoder never loses a valid frame that follows garbage: on a start byte it w
 length, rejects a length outside 2 ... MAX_LEN, and on a CRC mismatch drops that start byte
 only and searches again from the byte after it (a valid frame hidden inside a bad one is
 found). A start byte and a plausible length from noise make the decoder wait for the bytes
-of a frame that never comes; `give_up_partial`, called when the line has gone quiet, drops
-it and looks at what was held. A frame with a good CRC whose id is unknown or whose payload
-does not fit its message is returned as a `DecodedFrame` with `problem` set, so the receiver
-can answer it (the firmware replies ERROR) instead of dropping it silently.
+of a frame that never comes. Two calls end the wait, for a receiver that sees the line go
+quiet: `recover_behind_partial` (at any quiet point) drops that start byte only when a whole
+frame already lies behind it, so a frame whose rest is merely late (a busy host, a USB
+adapter's latency timer) is kept; `give_up_partial` (after a silence no frame has gaps of)
+drops it whatever follows and looks at what was held. A frame with a good CRC whose id is
+unknown or whose payload does not fit its message is returned as a `DecodedFrame` with
+`problem` set, so the receiver can answer it (the firmware replies ERROR) instead of
+dropping it silently.
 """
 
 from __future__ import annotations
@@ -135,6 +139,28 @@ class FrameDecoder:
     def pending(self) -> int:
         """Bytes held waiting for the rest of a frame."""
         return len(self._buffer)
+
+    def recover_behind_partial(self) -> list[DecodedFrame]:
+        """The frames lying whole behind the start byte held at the front, if there are any.
+
+        When the bytes after the held start byte already contain a complete frame with a
+        good CRC, that start byte was noise: it is dropped, as `give_up_partial` would, and
+        the frames found are returned. Otherwise nothing changes and [] is returned: the held
+        bytes may be a real frame whose rest is still on its way.
+        """
+        if len(self._buffer) < 2:
+            return []
+        probe = FrameDecoder()
+        frames = probe.feed(bytes(self._buffer[1:]))
+        if not frames:
+            return []
+        stats = self.statistics
+        stats.skipped_bytes += 1 + probe.statistics.skipped_bytes
+        stats.crc_errors += probe.statistics.crc_errors
+        stats.length_errors += probe.statistics.length_errors
+        stats.frames += probe.statistics.frames
+        self._buffer = probe._buffer
+        return frames
 
     def give_up_partial(self) -> list[DecodedFrame]:
         """Treat the start byte of a frame that is waiting for its rest as garbage (call it

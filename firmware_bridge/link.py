@@ -31,9 +31,13 @@ firmware's verbs as blocking calls with timeouts, in the manner of Klipper's
   dropped and the next request begins with a new handshake.
 * Garbage on the line costs no valid frame (the decoder resyncs), but for the rare one that
   garbage completes into a frame with a good CRC (a frame cut just before its last byte,
-  when that byte is 0xA5, takes the next frame's start byte); when the line has been quiet
-  for `quiet_s` with bytes pending, the reader gives up the partial frame
-  (`FrameDecoder.give_up_partial`), so a start byte from noise cannot hold back a valid frame.
+  when that byte is 0xA5, takes the next frame's start byte). When the line has been quiet
+  for `quiet_s` with bytes held, a whole frame already behind the held start byte is taken
+  (`FrameDecoder.recover_behind_partial`), so a start byte from noise holds back a valid
+  frame by `quiet_s` at most; a partial frame with nothing whole behind it is kept, because
+  its rest may be late (a loaded host, a USB adapter's latency timer, a simulator that fell
+  behind), and is given up (`FrameDecoder.give_up_partial`) only after `partial_timeout_s`
+  of silence, when its sender has stopped (a reset in mid-frame).
 * `statistics()` counts frames, CRC and length errors, skipped bytes, firmware frames lost
   (gaps in its sequence numbers), round trips and their times, resends, resyncs, timeouts.
 
@@ -222,7 +226,8 @@ class LinkStatistics:
         frames_sent: frames written, resends included.
         frames_received: frames with a good CRC.
         crc_errors, length_errors, skipped_bytes: the decoder's counts of line damage.
-        partials_given_up: times a partial frame was dropped after the line went quiet.
+        partials_given_up: times a partial frame was dropped after `partial_timeout_s` of
+            silence.
         unusable_frames: frames with a good CRC but an unknown id or a payload that does not
             fit, or sent in the wrong direction.
         lost_frames: firmware frames missing from its sequence numbers.
@@ -332,8 +337,11 @@ class McuLink:
         expected_version: the protocol (major, minor) this host speaks.
         expected_table_hash: the message table's hash this host was built from.
         clock_ns: the host clock (ns) for send/receive stamps and event times.
-        quiet_s: how long the line must be silent, with bytes held, before the partial frame
-            is given up (s). Longer than any gap inside one frame on this kind of line.
+        quiet_s: how long the line must be silent, with bytes held, before the decoder looks
+            behind the held start byte for a whole frame (s); the read timeout.
+        partial_timeout_s: how long the line must be silent before a partial frame with
+            nothing whole behind it is given up (s). Longer than any gap inside one frame
+            on this kind of line.
         write_timeout_s: limit of one write (s).
         event_queue_size: events kept until read; the oldest is dropped when full.
         sync_interval_s: period of the background clock-sync ping after `connect` (s); None
@@ -361,6 +369,7 @@ class McuLink:
         expected_table_hash: int = TABLE_HASH,
         clock_ns: Callable[[], int] = time.monotonic_ns,
         quiet_s: float = 0.01,
+        partial_timeout_s: float = 0.5,
         write_timeout_s: float = 1.0,
         event_queue_size: int = 4096,
         sync_interval_s: float | None = 0.1,
@@ -378,6 +387,7 @@ class McuLink:
         self.expected_table_hash = int(expected_table_hash)
         self._clock_ns = clock_ns
         self._quiet_s = float(quiet_s)
+        self._partial_timeout_ns = int(float(partial_timeout_s) * 1e9)
         self._sync_interval_s = sync_interval_s
         self._initial_pings = int(initial_pings)
         self._initial_ping_gap_s = float(initial_ping_gap_s)
@@ -881,6 +891,7 @@ class McuLink:
 
     def _read_loop(self) -> None:
         port = self._port
+        last_byte_ns = time.monotonic_ns()
         while not self._closing.is_set():
             try:
                 data = port.read(1)
@@ -893,16 +904,20 @@ class McuLink:
                     self._fail(exc)
                 return
             now = self._clock_ns()
+            if data:
+                last_byte_ns = time.monotonic_ns()
             with self._state_lock:
                 if data:
                     frames = self._decoder.feed(data)
-                elif self._decoder.pending():
+                elif not self._decoder.pending():
+                    continue
+                elif time.monotonic_ns() - last_byte_ns < self._partial_timeout_ns:
+                    frames = self._decoder.recover_behind_partial()
+                else:
                     frames = self._decoder.give_up_partial()
                     self._stats = replace(
                         self._stats, partials_given_up=self._stats.partials_given_up + 1
                     )
-                else:
-                    continue
                 for frame in frames:
                     self._dispatch(frame, now)
 

@@ -386,9 +386,11 @@ def test_line_damage_costs_at_most_the_frame_it_swallows(damaged_line, damage):
 
 
 class LossyLine:
-    """A line that loses chosen frames: a TCP server on 127.0.0.1 that the link reaches as
-    ``socket://127.0.0.1:PORT`` and that forwards whole frames between it and the MCU's pty,
-    dropping the next frame of a name put in `drop_to_host` or `drop_to_mcu`."""
+    """A line that loses or holds up chosen frames: a TCP server on 127.0.0.1 that the link
+    reaches as ``socket://127.0.0.1:PORT`` and that forwards whole frames between it and the
+    MCU's pty, dropping the next frame of a name put in `drop_to_host` or `drop_to_mcu`, and
+    sending the next frame of a name put in `stall_to_host` in two halves `stall_s` apart
+    (what a loaded host or a USB adapter's latency timer does to a frame)."""
 
     def __init__(self, pty_path: str) -> None:
         self.server = socket.create_server(("127.0.0.1", 0))
@@ -397,6 +399,9 @@ class LossyLine:
         self.drop_to_host: list[str] = []
         self.drop_to_mcu: list[str] = []
         self.dropped: list[str] = []
+        self.stall_to_host: list[str] = []
+        self.stall_s = 0.0
+        self.stalled: list[str] = []
         self.client: socket.socket | None = None
         self._stop = threading.Event()
         self._threads = [threading.Thread(target=self._serve, daemon=True)]
@@ -426,7 +431,16 @@ class LossyLine:
             except (serial.SerialException, OSError):
                 return
             for frame in decoder.feed(data):
-                if not self._drop(self.drop_to_host, frame):
+                if self._drop(self.drop_to_host, frame):
+                    continue
+                if frame.name in self.stall_to_host:
+                    self.stall_to_host.remove(frame.name)
+                    self.stalled.append(frame.name)
+                    half = len(frame.raw) // 2
+                    self.client.sendall(frame.raw[:half])
+                    time.sleep(self.stall_s)
+                    self.client.sendall(frame.raw[half:])
+                else:
                     self.client.sendall(frame.raw)
 
     def _pump_to_mcu(self) -> None:
@@ -520,6 +534,22 @@ def test_a_lost_event_shows_as_a_gap_in_both_sequences(lossy):
     triggers, _ = _until_stopped(link, timeout_s=2.0)
     assert [t.trigger_seq for t in triggers] == [2, 3, 4, 5]
     assert link.statistics().lost_frames == 1
+
+
+def test_a_frame_held_up_in_mid_frame_is_still_received(lossy):
+    """Half a TRIGGER, then ten quiet periods of the link's reader, then the rest: the
+    link keeps the partial frame (nothing whole lies behind its start byte) and takes it
+    when it completes."""
+    link, line = lossy
+    link.configure(TriggerSource.PERIOD, 200, 2000, count=3)
+    line.stall_s = 0.1
+    line.stall_to_host.append("TRIGGER")
+    link.arm()
+    triggers, stopped = _until_stopped(link, timeout_s=2.0)
+    assert line.stalled == ["TRIGGER"]
+    assert [t.trigger_seq for t in triggers] == [1, 2, 3] and stopped.triggers == 3
+    stats = link.statistics()
+    assert stats.lost_frames == 0 and stats.partials_given_up == 0
 
 
 def test_clock_sync_tracks_the_simulated_clock(start):

@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from firmware_bridge.framing import FrameDecoder, FramingError, encode
+from firmware_bridge.framing import DecoderStatistics, FrameDecoder, FramingError, encode
 from firmware_bridge.messages import MAX_LEN, MESSAGES, START_BYTE, crc16
 
 RANGES = {
@@ -148,6 +148,49 @@ def test_any_split_of_the_stream_gives_the_same_frames(stream, cuts):
 
 
 @settings(max_examples=200, deadline=None)
+@given(
+    stream=st.lists(st.one_of(valid_frames(), garbage), max_size=15).map(b"".join),
+    cuts=st.lists(st.integers(0, 2000), max_size=30),
+)
+def test_quiet_points_inside_the_stream_do_not_change_the_frames(stream, cuts):
+    """A pause at any byte (the receiver calls recover_behind_partial there) yields the same
+    frames as the stream without pauses: a held start byte is dropped early only when the
+    search the CRC check would make finds a whole frame behind it."""
+    whole = FrameDecoder()
+    expected = [f.raw for f in whole.feed(stream)] + drain(whole)
+    pieces = sorted({c % (len(stream) + 1) for c in cuts} | {0, len(stream)})
+    paused = FrameDecoder()
+    got: list[bytes] = []
+    for begin, end in zip(pieces, pieces[1:], strict=False):
+        got.extend(f.raw for f in paused.feed(stream[begin:end]))
+        got.extend(f.raw for f in paused.recover_behind_partial())
+    got.extend(drain(paused))
+    assert got == expected
+
+
+@settings(max_examples=100, deadline=None)
+@given(frame=valid_frames(), cut=st.integers(1, 1000), pauses=st.integers(1, 5))
+def test_a_frame_whose_rest_is_late_is_kept_at_quiet_points(frame, cut, pauses):
+    cut = 1 + cut % (len(frame) - 1)
+    decoder = FrameDecoder()
+    assert decoder.feed(frame[:cut]) == []
+    for _ in range(pauses):
+        assert decoder.recover_behind_partial() == []
+    assert decoder.pending() == cut
+    assert [f.raw for f in decoder.feed(frame[cut:])] == [frame]
+    assert decoder.statistics == DecoderStatistics(frames=1)
+
+
+def test_a_whole_frame_behind_a_noise_start_byte_is_taken_at_a_quiet_point():
+    frame = encode("PING", 3, token=99)
+    decoder = FrameDecoder()
+    assert decoder.feed(bytes([START_BYTE, MAX_LEN]) + frame) == []
+    assert [f.raw for f in decoder.recover_behind_partial()] == [frame]
+    assert decoder.pending() == 0
+    assert decoder.statistics.skipped_bytes == 2 and decoder.statistics.frames == 1
+
+
+@settings(max_examples=200, deadline=None)
 @given(data=st.binary(max_size=500), cuts=st.lists(st.integers(0, 500), max_size=10))
 def test_random_bytes_never_raise(data, cuts):
     decoder = FrameDecoder()
@@ -174,14 +217,18 @@ def test_a_frame_decodes_to_the_values_it_was_built_from(frame):
 def test_a_truncated_frame_can_swallow_the_next_start_byte():
     """A limit of the framing, kept visible: a frame cut just before its last CRC byte,
     when that byte is 0xA5 (one frame in 256), is completed by the start byte of the frame
-    that follows at once, and that frame is lost. A quiet point in between (the receiver
-    gives up the partial) saves it."""
+    that follows, and that frame is lost. A short pause in between does not save it (the
+    rest of the cut frame might be late); a silence long enough for the receiver to give up
+    the partial does."""
     cut = encode("ACK", 0x85, acked_seq=0xA9)
     assert cut[-1] == START_BYTE
     following = encode("HELLO", 0)
     busy = FrameDecoder()
     got = [f.raw for f in busy.feed(cut[:-1] + following)] + drain(busy)
     assert got == [cut]
+    paused = FrameDecoder()
+    assert paused.feed(cut[:-1]) == [] and paused.recover_behind_partial() == []
+    assert [f.raw for f in paused.feed(following)] == [cut]
     quiet = FrameDecoder()
     assert quiet.feed(cut[:-1]) == []
     got = [f.raw for f in quiet.give_up_partial() + quiet.feed(following)]
