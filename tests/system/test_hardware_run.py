@@ -59,6 +59,11 @@ def _rows(path: Path) -> list[dict[str, str]]:
 
 
 def test_extensometer_run_measures_a_gige_specimen_against_its_truth(tmp_path):
+    """`extensometer run` on the GigE camera and the Modbus TCP frame: strain within 3e-4 of
+    the truth log at every measured frame, the frame commanded, the recording replayed. The
+    stream loses no frame; the live loop may drop some it has no room for while the machine
+    is busy (counted, and only frames the camera delivered): the rate it sustains is a
+    benchmark figure, not this test's."""
     controller = SimulatedController()
     port = free_tcp_port()
     with (
@@ -101,8 +106,9 @@ def test_extensometer_run_measures_a_gige_specimen_against_its_truth(tmp_path):
     assert summary["exit_status"] == "completed" and "strain" in summary["reason"]
     assert summary["camera_outages"] == 0 and summary["frames_without_controller"] == 0
     statistics = summary["camera_statistics"]
-    assert statistics["frames_delivered"] >= summary["frames_processed"] + 1
-    assert statistics["frames_lost"] == 0 == summary["frames_dropped"]
+    assert statistics["frames_lost"] == 0
+    measured_or_dropped = summary["frames_processed"] + 1 + summary["frames_dropped"]
+    assert statistics["frames_delivered"] >= measured_or_dropped
     rows = _rows(out / "strain.csv")
     assert len(rows) == summary["frames_processed"] >= 15
     errors = []
