@@ -48,7 +48,7 @@ AVR_FLAGS = (
     "-Wl,--gc-sections",
 )
 SIMAVR_INCLUDE = Path(os.environ.get("SIMAVR_INCLUDE_DIR", "/usr/include/simavr"))
-HARNESS_LIBS = ("-lsimavr", "-lsimavrparts", "-lutil", "-lpthread", "-lm")
+HARNESS_LIBS = ("-lsimavr", "-lutil", "-lm")
 
 
 class FirmwareBuildError(RuntimeError):
@@ -108,7 +108,6 @@ def build_harness(out_dir: Path) -> Path:
         "-O2",
         "-Wall",
         f"-I{SIMAVR_INCLUDE}",
-        f"-I{SIMAVR_INCLUDE / 'parts'}",
         str(HARNESS_SOURCE),
         *HARNESS_LIBS,
     ]

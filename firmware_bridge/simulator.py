@@ -25,9 +25,8 @@ new constant rate from the current simulated time. `drive_pin("C0", 0)` drives a
 input (the test build's watchdog hang pin).
 
 Stopping (leaving the `with`, or `stop()`) asks the harness to quit, which flushes its log
-and removes the link; it is terminated, then killed, if it does not. The harness never calls
-simavr's `uart_pty_stop()` (it deadlocks). What this does not model is listed in harness.c
-(no other peripherals, UART bytes 10 % slower than real 8N1).
+and removes the link; it is terminated, then killed, if it does not. What this does not
+model is listed in harness.c (no other peripherals, UART bytes 10 % slower than real 8N1).
 """
 
 from __future__ import annotations

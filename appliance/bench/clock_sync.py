@@ -13,10 +13,11 @@ simulated time at the wall clock (CLOCK_MONOTONIC, the host clock of the link), 
 log gives every trigger edge in simulated ns, to the CPU cycle. So the truth for an edge at
 simulated time ``s`` is ``released + s``, where `released` is the host's stamp of the
 release. That line is itself uncertain: the harness starts its clock a little after it
-reads "go" (tens of us on an idle machine), and it paces in steps (it simulates 100 us,
-then sleeps once simulated time is more than 200 us ahead), so the simulated CPU executes a
-given cycle up to ~0.3 ms before ``released + s``; when the machine cannot keep up, it falls
-behind (up to 20 ms; beyond that it gives up and counts a slip, and the truth is void).
+reads "go" (tens of us on an idle machine), and it paces in steps (it simulates 20 us,
+then sleeps once simulated time is more than 20 us ahead), so the simulated CPU executes a
+given cycle up to ~40 us before ``released + s``, or after it by the host's sleep overshoot;
+when the machine cannot keep up, it falls behind (up to 20 ms; beyond that it gives up and
+counts a slip, and the truth is void).
 
 Figures:
 
@@ -37,9 +38,9 @@ Figures:
 The link corrects the known part of the asymmetry: the firmware stamps a PING at its last
 byte and a PING is 8 bytes shorter than its PONG; simavr's UART takes 11 bit times a byte at
 500 kBd (22 us), so the PING's stamp lies 88 us before the round trip's midpoint
-(`wire_byte_ns`). The rest of the asymmetry (simavr's pty thread polls its output every
-0.5 ms; the host's pty and thread wake-ups) is not corrected: it would have to be measured
-against this very truth.
+(`wire_byte_ns`). The rest of the asymmetry (the host's pty and thread wake-ups; the
+harness hands bytes over in both directions at the end of each 20 us step) is not
+corrected: it would have to be measured against this very truth.
 
 What it does not measure: a real UART, a USB-serial adapter's latency timer, or a real
 crystal's drift (the simulated tick is exact); the host's camera timestamps.
@@ -221,7 +222,7 @@ def measure_clock_sync(duration_s: float, work_dir: Path) -> dict[str, Any]:
         },
         "ground_truth": (
             "released + simulated ns of each rising edge (harness pacing); uncertain by the "
-            "harness's start delay (>= 0) and its pacing steps (the CPU runs up to ~0.3 ms "
+            "harness's start delay (>= 0) and its pacing steps (the CPU runs up to ~40 us "
             "ahead); void when pacing slipped"
         ),
         "machine": {"python": platform.python_version(), "processor": platform.machine()},

@@ -1,16 +1,17 @@
 /*
  * harness.c: runs the trigger firmware on simavr (ATmega328P, 16 MHz) for the tests and the
  * jitter benchmark. Built by firmware_bridge.firmware_build.build_harness() with
- *   gcc -O2 harness.c -I/usr/include/simavr -I/usr/include/simavr/parts
- *       -lsimavr -lsimavrparts -lutil -lpthread
+ *   gcc -O2 harness.c -I/usr/include/simavr -lsimavr -lutil -lm
  * and driven by firmware_bridge.simulator.SimulatedMcu.
  *
  *   harness FIRMWARE.elf --pty LINK --edges FILE [--encoder START_NS:COUNTS_PER_S[:DURATION_NS]]...
  *           [--speed FACTOR] [--hold]
  *
  * What it does:
- *   - UART0 <-> a pty (simavr's uart_pty part); LINK is made a symlink to the pty's slave, so
- *     pyserial can open LINK. simavr's own fixed link /tmp/simavr-uart0 is removed again.
+ *   - UART0 <-> a pty, bridged here at the end of every 20 us step of simulation in both
+ *     directions (simavr's uart_pty part writes out only when its thread's 0.5 ms select
+ *     times out, a lopsided delay); LINK is made a symlink to the pty's slave, so pyserial
+ *     can open LINK.
  *   - Every change of the trigger pin PB1 is written to FILE, line-buffered, as
  *       "<simulated ns> PB1 <level>"
  *     and every MCU reset (the watchdog's) as "<simulated ns> RESET 1". Simulated time is
@@ -23,22 +24,23 @@
  *     and an optional duration; a segment without one runs until the next segment starts
  *     (or for ever). Counts are placed at start + k / rate, rounded to the CPU cycle, with
  *     avr_cycle_timer_register, so they are exact in simulated time.
- *   - Pacing: simulated time is kept from running ahead of wall time: after each 100 us of
- *     simulation the harness sleeps while simulated time / FACTOR is ahead of wall time
+ *   - Pacing: simulated time is kept from running ahead of wall time: after each 20 us of
+ *     simulation the harness sleeps (timer slack 1 us) while simulated time / FACTOR is more
+ *     than 20 us ahead of wall time
  *     since the start (default FACTOR 1: ticks track the wall clock, so a host's clock sync
  *     and its time-outs mean what they would on hardware). When the host machine is too slow
  *     to keep up, simulated time falls behind; a lag over 20 ms is forgiven (the wall-clock
  *     origin moves) instead of being caught up in a burst, and counted as a slip. FACTOR 0
  *     runs as fast as possible. simavr's own sleep (usleep while the AVR sleeps) is replaced
- *     by this pacing.
+ *     by this pacing, and simavr's polling of low INT0/INT1 pins is switched off (see
+ *     no_level_polling), so a sleeping CPU is simulated in jumps, far faster than real time.
  *   - --hold keeps the CPU in reset until "go" arrives on stdin, so a host can open the pty
  *     first (pyserial flushes input on open) and see BOOT.
  *   - Commands on stdin, one per line: "go"; "quit"; "encoder COUNTS_PER_S" (a new segment
  *     from now on, replacing the rest of the schedule); "pin <port><bit> <0|1>" (drive an
  *     input, e.g. "pin C0 0" for the test build's hang pin).
  *   - Stops on "quit", end of stdin, SIGTERM or SIGINT: it flushes the log, removes LINK and
- *     exits without uart_pty_stop() (which deadlocks in simavr 1.6). At exit one line of
- *     pacing statistics goes to stderr.
+ *     exits. At exit one line of pacing statistics goes to stderr.
  *
  * What it does not do: no other peripherals or pins are modelled; pin changes the firmware
  * makes on other pins are not logged; simavr's UART counts 11 bit times per byte (it always
@@ -47,8 +49,12 @@
 #define _GNU_SOURCE
 #include <errno.h>
 #include <math.h>
+#include <fcntl.h>
 #include <poll.h>
+#include <pty.h>
 #include <signal.h>
+#include <sys/prctl.h>
+#include <termios.h>
 #include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -56,17 +62,17 @@
 #include <time.h>
 #include <unistd.h>
 
+#include "avr_extint.h"
 #include "avr_ioport.h"
 #include "avr_timer.h"
 #include "avr_uart.h"
 #include "sim_avr.h"
 #include "sim_elf.h"
-#include "uart_pty.h"
 
 #define MCU_NAME "atmega328p"
 #define MCU_HZ 16000000ULL
-#define CHUNK_CYCLES 1600
-#define SLEEP_THRESHOLD_NS 200000LL
+#define CHUNK_CYCLES 320
+#define SLEEP_THRESHOLD_NS 20000LL
 #define MAX_LAG_NS 20000000LL
 #define MAX_SEGMENTS 64
 #define MAX_DRIVEN 16
@@ -84,7 +90,15 @@ typedef struct {
 } driven_pin_t;
 
 static avr_t *avr;
-static uart_pty_t pty;
+static int pty_master = -1;
+static char pty_slave[64];
+static avr_irq_t *uart_input;
+static int uart_xon;
+static uint8_t to_host[4096];
+static size_t to_host_used;
+static uint64_t to_host_dropped;
+static uint8_t to_mcu[512];
+static size_t to_mcu_used, to_mcu_done;
 static avr_timer_t *timer1;
 static FILE *edge_log;
 static const char *link_path;
@@ -139,8 +153,11 @@ static void cleanup_and_exit(int status)
         fflush(edge_log);
     if (link_path)
         unlink(link_path);
-    fprintf(stderr, "harness: simulated %.3f s, pacing slips %llu, worst lag %.3f ms\n",
-            cycles_to_ns(sim_cycles()) / 1e9, (unsigned long long)slips, worst_lag_ns / 1e6);
+    fprintf(stderr,
+            "harness: simulated %.3f s, pacing slips %llu, worst lag %.3f ms, "
+            "bytes to host dropped %llu\n",
+            cycles_to_ns(sim_cycles()) / 1e9, (unsigned long long)slips, worst_lag_ns / 1e6,
+            (unsigned long long)to_host_dropped);
     fflush(stderr);
     _exit(status);
 }
@@ -277,10 +294,23 @@ static void mcu_reset(struct avr_t *core)
     reset_seen = 1;
 }
 
+/* simavr 1.6 polls an INT pin that is low every cycle ("strict" level triggering, on by
+ * default and again after every reset), whatever the pin's sense control says, and the poll
+ * ends only when the pin goes high. The encoder pins sit low for long stretches, so the CPU
+ * would never sleep in simulation and the harness would barely keep up with wall time. The
+ * firmware senses any change on INT0 and INT1, never the low level, so polling is switched
+ * off. */
+static void no_level_polling(void)
+{
+    avr_extint_set_strict_lvl_trig(avr, 0, 0);
+    avr_extint_set_strict_lvl_trig(avr, 1, 0);
+}
+
 static void after_reset(uint64_t cycle_before)
 {
     if (avr->cycle < cycle_before)
         cycle_offset += cycle_before - avr->cycle;
+    no_level_polling();
     fprintf(edge_log, "%llu RESET 1\n", (unsigned long long)cycles_to_ns(sim_cycles()));
     for (int i = 0; i < driven_count; i++) {
         drive_pin(driven[i].port, driven[i].bit, (uint8_t)!driven[i].level);
@@ -353,25 +383,97 @@ static avr_timer_t *find_timer(char name)
     return NULL;
 }
 
+/* The UART bridge. Bytes the firmware sends are collected as the UART puts them out and
+ * written to the pty at the end of each chunk; bytes from the host are read at the end of
+ * each chunk and handed to the UART while it signals room (XON). Both directions thus wait
+ * at most one chunk of simulated time, the same either way. Bytes from the host wait until
+ * the UART first signals room (its receiver enabled), so what a host sends before the
+ * firmware has started is not lost; after a reset they are, as on hardware. */
+static void uart_byte_out(struct avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    (void)param;
+    if (to_host_used < sizeof to_host)
+        to_host[to_host_used++] = (uint8_t)value;
+    else
+        to_host_dropped++;
+}
+
+static void feed_uart(void)
+{
+    while (uart_xon && to_mcu_done < to_mcu_used)
+        avr_raise_irq(uart_input, to_mcu[to_mcu_done++]);
+}
+
+static void uart_room(struct avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    (void)value;
+    (void)param;
+    uart_xon = 1;
+    feed_uart();
+}
+
+static void uart_full(struct avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    (void)value;
+    (void)param;
+    uart_xon = 0;
+}
+
+/* Write what the firmware sent, read what the host sent. With no reader on the slave side
+ * the pty keeps what it can hold; what does not fit in it and in `to_host` is counted as
+ * dropped (a host that does not read its port loses bytes, as on a real line). */
+static void service_uart(void)
+{
+    if (to_host_used) {
+        ssize_t n = write(pty_master, to_host, to_host_used);
+        if (n > 0) {
+            to_host_used -= (size_t)n;
+            memmove(to_host, to_host + n, to_host_used);
+        }
+    }
+    if (to_mcu_done == to_mcu_used) {
+        ssize_t n = read(pty_master, to_mcu, sizeof to_mcu);
+        to_mcu_done = 0;
+        to_mcu_used = n > 0 ? (size_t)n : 0;
+    }
+    feed_uart();
+}
+
 static void connect_uart(void)
 {
-    uart_pty_init(avr, &pty);
-    uart_pty_connect(&pty, '0');
+    int slave;
+    if (openpty(&pty_master, &slave, pty_slave, NULL, NULL) < 0) {
+        fprintf(stderr, "harness: cannot open a pty: %s\n", strerror(errno));
+        exit(1);
+    }
+    struct termios raw;
+    tcgetattr(pty_master, &raw);
+    cfmakeraw(&raw);
+    tcsetattr(pty_master, TCSANOW, &raw);
+    tcgetattr(slave, &raw);
+    cfmakeraw(&raw);
+    tcsetattr(slave, TCSANOW, &raw);
+    close(slave);
+    fcntl(pty_master, F_SETFL, fcntl(pty_master, F_GETFL) | O_NONBLOCK);
+
     uint32_t flags = 0;
     avr_ioctl(avr, AVR_IOCTL_UART_GET_FLAGS('0'), &flags);
     flags &= ~(uint32_t)(AVR_UART_FLAG_POLL_SLEEP | AVR_UART_FLAG_STDIO);
     avr_ioctl(avr, AVR_IOCTL_UART_SET_FLAGS('0'), &flags);
+    uart_input = avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_INPUT);
+    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_OUTPUT),
+                            uart_byte_out, NULL);
+    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_OUT_XON),
+                            uart_room, NULL);
+    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_OUT_XOFF),
+                            uart_full, NULL);
 
-    char target[256];
-    ssize_t n = readlink("/tmp/simavr-uart0", target, sizeof target - 1);
-    if (n > 0) {
-        target[n] = 0;
-        if (!strcmp(target, pty.pty.slavename))
-            unlink("/tmp/simavr-uart0");
-    }
     unlink(link_path);
-    if (symlink(pty.pty.slavename, link_path) != 0) {
-        fprintf(stderr, "harness: cannot link %s -> %s: %s\n", link_path, pty.pty.slavename,
+    if (symlink(pty_slave, link_path) != 0) {
+        fprintf(stderr, "harness: cannot link %s -> %s: %s\n", link_path, pty_slave,
                 strerror(errno));
         exit(1);
     }
@@ -455,11 +557,13 @@ int main(int argc, char **argv)
     avr->reset = mcu_reset;
     timer1 = find_timer('1');
 
+    prctl(PR_SET_TIMERSLACK, 1000UL);
     signal(SIGTERM, on_signal);
     signal(SIGINT, on_signal);
     signal(SIGPIPE, SIG_IGN);
 
     connect_uart();
+    no_level_polling();
     avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('B'), 1),
                             trigger_pin_changed, NULL);
     set_pin('D', 2, 0);
@@ -494,8 +598,9 @@ int main(int argc, char **argv)
                 cleanup_and_exit(3);
             }
         }
+        service_uart();
         pace(origin_cycles, &origin_wall);
-        if ((++chunks & 7) == 0) {
+        if ((++chunks & 31) == 0) {
             if (stop_requested || read_commands(&go) < 0)
                 cleanup_and_exit(0);
         }
