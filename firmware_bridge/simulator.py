@@ -6,6 +6,7 @@
         link.write(framing.encode("HELLO", 0))
         ...
         edges = mcu.edges()                      # [(sim_time_ns, "PB1", level), ...]
+        walls = mcu.edge_wall_times()            # [(sim_time_ns, level, wall_ns), ...]
 
 `SimulatedMcu` starts the harness (`firmware/sim/harness.c`) as a subprocess, waits for its
 pty link to appear, and exposes `.port` (a path pyserial opens like a serial device; the
@@ -162,6 +163,16 @@ class SimulatedMcu:
         """The edge log so far: (simulated ns, pin, level) of every change of `pin`."""
         return [entry for entry in self._log_entries() if entry[1] == pin]
 
+    def edge_wall_times(self, pin: str = "PB1") -> list[tuple[int, int, int]]:
+        """(simulated ns, level, wall ns) of every change of `pin`: wall ns is the host's
+        CLOCK_MONOTONIC (`time.monotonic_ns`) when the harness simulated the edge, which is
+        when a watcher of the wire would see it, to the harness's 20 us pacing step."""
+        return [
+            (ns, level, wall)
+            for ns, name, level, wall in self._log_records()
+            if name == pin and wall is not None
+        ]
+
     def resets(self) -> list[int]:
         """Simulated ns of every MCU reset after the first start (the watchdog's)."""
         return [entry[0] for entry in self._log_entries() if entry[1] == "RESET"]
@@ -209,16 +220,22 @@ class SimulatedMcu:
         process.stdin.flush()
 
     def _log_entries(self) -> list[tuple[int, str, int]]:
+        return [(ns, name, level) for ns, name, level, _ in self._log_records()]
+
+    def _log_records(self) -> list[tuple[int, str, int, int | None]]:
+        """(simulated ns, name, level, wall ns or None) of every whole line of the log (a
+        line still being written is left for the next call)."""
         try:
             text = self.edge_log.read_text()
         except FileNotFoundError:
             return []
-        entries = []
-        for line in text.splitlines():
+        records = []
+        for line in text.split("\n")[:-1]:
             parts = line.split()
-            if len(parts) == 3:
-                entries.append((int(parts[0]), parts[1], int(parts[2])))
-        return entries
+            if len(parts) in (3, 4):
+                wall = int(parts[3]) if len(parts) == 4 else None
+                records.append((int(parts[0]), parts[1], int(parts[2]), wall))
+        return records
 
     def _tail(self, lines: int = 8) -> str:
         return " | ".join(self.log_text().strip().splitlines()[-lines:])

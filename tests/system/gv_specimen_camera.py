@@ -276,7 +276,7 @@ class TriggerWire:
                 if not pending.endswith("\n"):
                     continue
                 fields, pending = pending.split(), ""
-                if len(fields) == 3 and fields[1] == "PB1" and fields[2] == "1":
+                if len(fields) >= 3 and fields[1] == "PB1" and fields[2] == "1":
                     self.pressed += 1
                     if self.miss_every and self.pressed % self.miss_every == 0:
                         continue

@@ -215,10 +215,15 @@ def test_period_triggering_events_and_edges(start):
     link.drain_events()
     period, width, count = 20_000, 200, 25
     link.configure(TriggerSource.PERIOD, width, period, count=count)
+    armed_ns = time.monotonic_ns()
     link.arm()
     triggers, stopped = _until_stopped(link, timeout_s=10.0)
     assert stopped.reason == StopReason.COUNT_DONE and stopped.triggers == count
     assert [t.trigger_seq for t in triggers] == list(range(1, count + 1))
+    walls = [wall for _, level, wall in run.mcu.edge_wall_times() if level == 1]
+    assert len(walls) == count and walls == sorted(walls)
+    assert armed_ns < walls[0]
+    assert all(wall < t.received_ns for wall, t in zip(walls, triggers, strict=True))
     ticks = [t.tick for t in triggers]
     assert {b - a for a, b in zip(ticks, ticks[1:], strict=False)} == {period}
     host = [t.host_time_ns for t in triggers]

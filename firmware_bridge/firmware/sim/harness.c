@@ -13,7 +13,9 @@
  *     times out, a lopsided delay); LINK is made a symlink to the pty's slave, so pyserial
  *     can open LINK.
  *   - Every change of the trigger pin PB1 is written to FILE, line-buffered, as
- *       "<simulated ns> PB1 <level>"
+ *       "<simulated ns> PB1 <level> <wall ns>"
+ *     (wall ns: CLOCK_MONOTONIC when the harness simulated the edge, the moment a wire
+ *     watcher would see it, to the pacing step)
  *     and every MCU reset (the watchdog's) as "<simulated ns> RESET 1". Simulated time is
  *     counted from the start of the simulation and runs on across resets. Edges made by
  *     Timer1's compare unit get the exact cycle the compare was scheduled for (taken from
@@ -189,8 +191,8 @@ static void trigger_pin_changed(struct avr_irq_t *irq, uint32_t value, void *par
         return;
     last_level = level;
     uint64_t cycle = (value & AVR_IOPORT_OUTPUT) ? compare_edge_cycle() : avr->cycle;
-    fprintf(edge_log, "%llu PB1 %d\n", (unsigned long long)cycles_to_ns(cycle_offset + cycle),
-            level);
+    fprintf(edge_log, "%llu PB1 %d %lld\n", (unsigned long long)cycles_to_ns(cycle_offset + cycle),
+            level, (long long)wall_ns());
 }
 
 static void drive_pin(char port, uint8_t bit, uint8_t level)
