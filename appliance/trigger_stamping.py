@@ -13,11 +13,15 @@ the camera and gives each frame the time of its trigger:
 * frames are matched to TRIGGER events by sequence: a frame `g` frame ids after the last
   one (g > 1: frames lost on the way) is trigger `last + g`. The match is checked against
   time: a frame's device time less its trigger's tick time is the camera's latency plus the
-  two clocks' offset; its smallest value over the last frames is the baseline, and a match
-  must put the frame between a third of the trigger spacing before its trigger and a third
-  before the next one (or `tolerance_s`, if larger). A camera that missed a pulse (still busy
-  when it came) has shifted the numbering: the neighbouring triggers are tried, the one
-  nearest in time taken and the re-synchronisation counted. After a few frames that fit no
+  two clocks' offset; its smallest value over the last frames is the baseline. The expected
+  trigger and its neighbours are tried, and the one whose offset is nearest the baseline is
+  taken, if it lies between one trigger spacing below the baseline and two thirds of a
+  spacing above it (or `tolerance_s`, if larger). A camera that missed a pulse (still busy
+  when it came), which shifts the numbering, is so re-synchronised (and counted). A frame
+  earlier than the baseline means the baseline was set by a late frame (a camera slow to
+  take its first trigger); the baseline is lowered by it rather than every later frame being
+  paired with the trigger before its own. Not told apart: a first frame later than half a
+  spacing followed at once by a missed pulse. After a few frames that fit no
   trigger (a camera back with a new clock) the baseline is dropped and the next frame is
   matched by frame ids alone;
 * the frame is returned with `timestamp_ns` = the trigger's tick on the host clock (ns,
@@ -191,7 +195,7 @@ class TriggerStampedCamera:
         expected = 1 if last is None else last[0].trigger_seq + max(1, frame.frame_id - last[1])
         event = self._event(expected, time.monotonic() + self.wait_s)
         if self._offsets and last is not None:
-            best = self._best_in_time(frame, expected, event)
+            best = self._best_in_time(frame, expected)
             if best is not None and best is not event:
                 self.resyncs += 1
             event = best
@@ -211,9 +215,7 @@ class TriggerStampedCamera:
         """Device time of the frame less the trigger's tick time, s (latency + clock offset)."""
         return frame.timestamp_ns * 1e-9 - event.tick / float(self.line.link.firmware.tick_hz)
 
-    def _best_in_time(
-        self, frame: Frame, expected: int, event: TriggerEvent | None
-    ) -> TriggerEvent | None:
+    def _best_in_time(self, frame: Frame, expected: int) -> TriggerEvent | None:
         baseline = min(self._offsets)
         tick_hz = float(self.line.link.firmware.tick_hz)
         assert self._last is not None
@@ -225,11 +227,9 @@ class TriggerStampedCamera:
         def fits(candidate: TriggerEvent) -> bool:
             steps = max(1, candidate.trigger_seq - previous.trigger_seq)
             spacing_s = (candidate.tick - previous.tick) / tick_hz / steps
-            window = max(self.tolerance_s, spacing_s / 3.0)
-            return -window <= latency_s(candidate) < max(self.tolerance_s, spacing_s - window)
+            late = max(self.tolerance_s, spacing_s * 2.0 / 3.0)
+            return -max(self.tolerance_s, spacing_s) < latency_s(candidate) < late
 
-        if event is not None and fits(event):
-            return event
         self._collect()
         candidates = [
             self._events[seq]

@@ -312,6 +312,7 @@ def specimen_camera(
     seed: int = 7,
     trigger_wire: Path | None = None,
     miss_every: int = 0,
+    first_delay_s: float = 0.0,
     niceness: int = 0,
     timeout_s: float = 60.0,
 ) -> Iterator[SpecimenCamera]:
@@ -329,6 +330,7 @@ def specimen_camera(
         trigger_wire: a firmware edge log whose trigger pulses trigger the camera (see
             `tests.system.gv_specimen_camera`); None = no wire.
         miss_every: the wire drops every Nth pulse (0 = none).
+        first_delay_s: the wire passes the first pulse this late, s.
         niceness: added to the program's nice value (leaves CPU to an emulated device).
         timeout_s: how long to wait for its READY line.
     """
@@ -357,6 +359,7 @@ def specimen_camera(
         str(truth_path),
         *(["--trigger-wire", str(trigger_wire)] if trigger_wire is not None else []),
         *(["--miss-every", str(miss_every)] if miss_every else []),
+        *(["--first-delay-s", repr(float(first_delay_s))] if first_delay_s else []),
     ]
     environment = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
     process = subprocess.Popen(

@@ -236,16 +236,24 @@ class TriggerWire:
     TRIGGER sequence number when it was armed once) and queued; the fill pattern `take`s the
     queue when it renders a frame: the frame answers the earliest press, later ones were lost
     while the camera was busy. With `miss_every` = N, every Nth pulse is not passed on (a
-    camera that misses pulses, for the host's re-synchronisation).
+    camera that misses pulses, for the host's re-synchronisation). With `first_delay_s`, the
+    first pulse is passed on that late (a camera slow to take its first trigger, so the
+    host's first frame sets too late a latency baseline).
     """
 
     def __init__(
-        self, fake_camera: Any, edge_log: Path, stop: threading.Event, miss_every: int = 0
+        self,
+        fake_camera: Any,
+        edge_log: Path,
+        stop: threading.Event,
+        miss_every: int = 0,
+        first_delay_s: float = 0.0,
     ) -> None:
         self.fake_camera = fake_camera
         self.edge_log = edge_log
         self.stop = stop
         self.miss_every = miss_every
+        self.first_delay_s = first_delay_s
         self.pressed = 0
         self._pending: list[int] = []
         self._lock = threading.Lock()
@@ -280,6 +288,12 @@ class TriggerWire:
                     self.pressed += 1
                     if self.miss_every and self.pressed % self.miss_every == 0:
                         continue
+                    if (
+                        self.pressed == 1
+                        and self.first_delay_s > 0
+                        and self.stop.wait(self.first_delay_s)
+                    ):
+                        return
                     with self._lock:
                         self._pending.append(self.pressed)
                     self.fake_camera.write_register(TRIGGER_SOFTWARE_REGISTER, 1)
@@ -308,6 +322,9 @@ def _arguments(argv: list[str] | None) -> argparse.Namespace:
     )
     parser.add_argument(
         "--miss-every", type=int, default=0, help="the wire drops every Nth pulse (0 = none)"
+    )
+    parser.add_argument(
+        "--first-delay-s", type=float, default=0.0, help="the wire passes the first pulse late"
     )
     arguments = parser.parse_args(argv)
     if arguments.width < 16 or arguments.height < 16:
@@ -384,7 +401,11 @@ def main(argv: list[str] | None = None) -> int:
         library.arv_fake_camera_set_fill_pattern(pointer, fill.callback, None)
         if arguments.trigger_wire is not None:
             fill.wire = TriggerWire(
-                fake_camera, arguments.trigger_wire, stop, miss_every=arguments.miss_every
+                fake_camera,
+                arguments.trigger_wire,
+                stop,
+                miss_every=arguments.miss_every,
+                first_delay_s=arguments.first_delay_s,
             )
             fill.wire.start()
         print(
