@@ -904,14 +904,15 @@ class McuLink:
                     self._fail(exc)
                 return
             now = self._clock_ns()
+            moment_ns = time.monotonic_ns()
             if data:
-                last_byte_ns = time.monotonic_ns()
+                last_byte_ns = moment_ns
             with self._state_lock:
                 if data:
                     frames = self._decoder.feed(data)
                 elif not self._decoder.pending():
                     continue
-                elif time.monotonic_ns() - last_byte_ns < self._partial_timeout_ns:
+                elif moment_ns - last_byte_ns < self._partial_timeout_ns:
                     frames = self._decoder.recover_behind_partial()
                 else:
                     frames = self._decoder.give_up_partial()

@@ -148,8 +148,9 @@ def measure_clock_sync(duration_s: float, work_dir: Path) -> dict[str, Any]:
                     break
             final = link.clock_estimate()
             statistics = link.statistics()
-            edges = [ns for ns, _, level in mcu.edges() if level == 1]
-            walls = {ns: wall for ns, level, wall in mcu.edge_wall_times() if level == 1}
+            rises = [(ns, wall) for ns, level, wall in mcu.edge_wall_times() if level == 1]
+            edges = [ns for ns, _ in rises]
+            walls = dict(rises)
         finally:
             link.close()
     log = mcu.log_text()

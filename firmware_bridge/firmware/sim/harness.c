@@ -419,9 +419,9 @@ static void uart_room(struct avr_irq_t *irq, uint32_t value, void *param)
 static void uart_full(struct avr_irq_t *irq, uint32_t value, void *param)
 {
     (void)irq;
-    (void)value;
     (void)param;
-    uart_xon = 0;
+    if (value)
+        uart_xon = 0;
 }
 
 /* Write what the firmware sent, read what the host sent. With no reader on the slave side
