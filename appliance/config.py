@@ -36,7 +36,7 @@ class CameraConfig:
     """[camera]: which camera and how it acquires.
 
     `exposure_us` and `frame_rate_hz` left out are chosen by the exposure planner
-    (`appliance.planner`) from the test speed and the optics: the longest exposure within
+    (`appliance.plan.exposure`) from the test speed and the optics: the longest exposure within
     `blur_budget_px` of motion blur (between `min_exposure_us` and `max_exposure_us`) and a
     frame rate that keeps the frame-to-frame motion of the marks inside the tracker's search,
     and no lower than `min_frame_rate_hz` (the rate the controller receives strain at), unless
@@ -91,17 +91,17 @@ class TriggerConfig:
     `source`: `internal` = the camera free-runs at the planned frame rate; `period` = the
     trigger microcontroller fires the camera at the planned period in its clock ticks;
     `encoder` = it fires every N counts of the crosshead encoder, N the planned
-    frame-to-frame travel (`appliance.trigger_plan`). The simulated test has a simulated
+    frame-to-frame travel (`appliance.plan.trigger_plan`). The simulated test has a simulated
     microcontroller on the simulated machine's encoder (`encoder_counts_per_mm`).
     `pulse_width_us` is the trigger pulse's width. `url` names the real microcontroller's
     serial port (a device path or pyserial URL); empty = the simulated one (simulated test
     only). A real camera on its output is triggered on its trigger line (EXTERNAL) and its
     frames are matched to the TRIGGER events and stamped with their times
-    (`appliance.trigger_stamping`); in a real-time simulated test it times the simulated
-    camera (`appliance.mcu_trigger`).
+    (`appliance.devices.trigger_stamping`); in a real-time simulated test it times the simulated
+    camera (`appliance.devices.mcu_trigger`).
 
     While the test runs, exposure and trigger spacing follow the crosshead speed the
-    controller reports (`appliance.exposure_pacing`): a speed more than `replan_hysteresis`
+    controller reports (`appliance.plan.pacing`): a speed more than `replan_hysteresis`
     (relative) above the one planned for is re-planned at once, one below it after
     `replan_slow_down_s` of slower readings; 0 = keep the plan of the test speed.
     """
@@ -208,7 +208,7 @@ class SimConfig:
 
 @dataclass(frozen=True)
 class RecordConfig:
-    """[record]: the MCAP recording of every test (`appliance.recorder`).
+    """[record]: the MCAP recording of every test (`appliance.recording.writer`).
 
     `path` empty: `run` records only with `--record`, `serve` writes a timestamped file per
     test into the service's state directory. The tracker's windows of every frame are always
@@ -229,7 +229,7 @@ class RecordConfig:
 
 @dataclass(frozen=True)
 class ModbusConfig:
-    """[modbus]: the strain server for the machine controller (`appliance.modbus_server`).
+    """[modbus]: the strain server for the machine controller (`appliance.live.modbus_server`).
 
     `tcp` is "HOST:PORT" to listen on (empty = no TCP server; bind 127.0.0.1 unless the
     controller is on another host), `rtu_device` a serial device for Modbus RTU (empty = no
@@ -251,7 +251,7 @@ class ModbusConfig:
 
 @dataclass(frozen=True)
 class RerunConfig:
-    """[rerun]: live monitoring in a Rerun viewer (`appliance.viewer`).
+    """[rerun]: live monitoring in a Rerun viewer (`appliance.live.viewer`).
 
     Any of three sinks: `serve` = "HOST:PORT" of a gRPC server remote viewers connect to (HOST
     an IP address: no name is looked up), `connect` = the URL of a viewer to push to

@@ -1,10 +1,10 @@
 """Replay: measure a recorded test again from its recorded pixels.
 
-`replay_recording` reads a recording (`appliance.recording_reader`), rebuilds the test's
+`replay_recording` reads a recording (`appliance.recording.reader`), rebuilds the test's
 tracker and gauges from the recorded configuration, reference frame and marks, and measures
 every recorded frame again with the same per-frame code as the live loop
-(`appliance.measurement.FrameMeasurer`), on a frame rebuilt from the recorded windows
-(`appliance.frame_windows.paste_windows`) with the recorded controller state and device
+(`appliance.measure.frame_measurer.FrameMeasurer`), on a frame rebuilt from the recorded windows
+(`appliance.measure.frame_windows.paste_windows`) with the recorded controller state and device
 time. Zero commands are applied where they were recorded.
 
 Without an override this reproduces the recorded strain series bit for bit; the summary
@@ -34,12 +34,10 @@ import numpy as np
 
 from appliance.config import config_from_table, merge_tables, read_config_table
 from appliance.errors import InputError
-from appliance.frame_windows import paste_windows, uncovered
-from appliance.gauges import Calibration, Gauge, StrainGaugesLayout
-from appliance.loop import LoopResult
-from appliance.measurement import FrameMeasurer, StrainSample
-from appliance.outputs import RunFacts, RunOutput
-from appliance.recording_format import (
+from appliance.measure.frame_measurer import FrameMeasurer, StrainSample
+from appliance.measure.frame_windows import paste_windows, uncovered
+from appliance.measure.gauges import Calibration, Gauge, StrainGaugesLayout
+from appliance.recording.format import (
     REFERENCE_ATTACHMENT,
     STRAIN_FIELDS,
     FormatError,
@@ -48,9 +46,11 @@ from appliance.recording_format import (
     number,
     window_of,
 )
-from appliance.recording_reader import RecordedSample, RecordingReader, config_table
+from appliance.recording.reader import RecordedSample, RecordingReader, config_table
+from appliance.run.loop import LoopResult
+from appliance.run.outputs import RunFacts, RunOutput
+from appliance.run.summary import RunSummary, SampleRecord
 from appliance.runner import RunOutcome, build_measurement
-from appliance.summary import RunSummary, SampleRecord
 from hal.camera.base import Frame
 
 

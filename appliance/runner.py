@@ -4,14 +4,14 @@
 
 1. devices: the simulated world (`--sim`: camera and frame on one virtual clock, with ground
    truth) or the camera and frame named by the configuration's URLs;
-2. exposure: the configured exposure and frame rate, or the planner's (`appliance.planner`):
+2. exposure: the configured exposure and frame rate, or the planner's (`appliance.plan.exposure`):
    the longest exposure whose motion blur at the test speed stays within the blur budget and
    the frame rate that keeps the marks' frame-to-frame motion inside the tracker's search;
 3. marks: placed on the reference image, centred on the specimen, at the configured gauge
    length; each axial mark a short line of points;
-4. the loop (`appliance.loop`) until the strain limit, the break, or an interrupt;
+4. the loop (`appliance.run.loop`) until the strain limit, the break, or an interrupt;
 5. outputs: `strain.csv` (every sample, with the truth when simulated) and `summary.json`
-   in the output directory, the MCAP recording (`appliance.recorder`) and any other output
+   in the output directory, the MCAP recording (`appliance.recording.writer`) and any other output
    given (a viewer), and the summary returned.
 """
 
@@ -31,21 +31,21 @@ import numpy as np
 
 from appliance import __version__
 from appliance.config import Config, register_map_of
+from appliance.devices.polled_machine import PolledFrame
 from appliance.errors import InputError
-from appliance.exposure_pacing import ExposurePacer, Replan
-from appliance.gauges import Calibration, StrainGauges, StrainGaugesLayout, place_marks
-from appliance.loop import DeviceEvent, MeasurementLoop
-from appliance.measurement import StopCriteria, StrainSample
-from appliance.optics import Optics
-from appliance.outputs import RunFacts, RunOutput
-from appliance.planner import ExposurePlan, motion_blur_length, plan_exposure
-from appliance.polled_frame import PolledFrame
-from appliance.recorder import McapRecorder
-from appliance.run_state import RunStateMachine, Transition
-from appliance.strain_file import StrainCsvWriter
-from appliance.summary import RunSummary, SampleRecord
-from appliance.tracking import MarkTracker, TrackerSettings
-from appliance.trigger_plan import TriggerPlan, TriggerReplanner, plan_triggers
+from appliance.measure.frame_measurer import StopCriteria, StrainSample
+from appliance.measure.gauges import Calibration, StrainGauges, StrainGaugesLayout, place_marks
+from appliance.measure.tracking import MarkTracker, TrackerSettings
+from appliance.plan.exposure import ExposurePlan, motion_blur_length, plan_exposure
+from appliance.plan.optics import Optics
+from appliance.plan.pacing import ExposurePacer, Replan
+from appliance.plan.trigger_plan import TriggerPlan, TriggerReplanner, plan_triggers
+from appliance.recording.writer import McapRecorder
+from appliance.run.loop import DeviceEvent, MeasurementLoop
+from appliance.run.outputs import RunFacts, RunOutput
+from appliance.run.state import RunStateMachine, Transition
+from appliance.run.strain_file import StrainCsvWriter
+from appliance.run.summary import RunSummary, SampleRecord
 from hal.camera.base import (
     Camera,
     CameraSettings,
@@ -295,7 +295,7 @@ def _check_trigger_url(config: Config, *, simulate: bool) -> None:
 def _connect_trigger_mcu(config: Config, world: Any) -> Any:
     """The real trigger microcontroller at `[trigger] url`, wired to the simulated camera of
     `world` (None: a real camera on its output)."""
-    from appliance.mcu_trigger import McuTriggerLine
+    from appliance.devices.mcu_trigger import McuTriggerLine
     from firmware_bridge.link import FirmwareError, McuLink
 
     try:
@@ -373,7 +373,7 @@ def _prepare_triggers(
         raise InputError(f"[trigger] pulse_width_us: {exc}") from None
     camera.prepare(TriggerInfo(mode=TriggerMode.EXTERNAL))
     if rig.world is None:
-        from appliance.trigger_stamping import TriggerStampedCamera
+        from appliance.devices.trigger_stamping import TriggerStampedCamera
 
         rig.camera = TriggerStampedCamera(camera, rig.mcu_line, triggers)
         return triggers
@@ -531,7 +531,7 @@ def run_test(
         on_transition: called at every change of the run state.
         on_loop: called with the measurement loop before it runs (to stop or zero it from
             another thread).
-        device_listeners: called with every `appliance.loop.DeviceEvent` (a camera or
+        device_listeners: called with every `appliance.run.loop.DeviceEvent` (a camera or
             controller lost or back), on the acquisition thread.
         test_id: names the test in the recording and the viewer.
 

@@ -2,7 +2,7 @@
 
 The service starts its outputs that outlive a test (the Modbus strain server, the Rerun
 viewer's server), checks the devices and warms up the measurement kernels, then tells the
-service manager it is ready (`READY=1`, `appliance.sd_notify`). From then on it runs one test
+service manager it is ready (`READY=1`, `appliance.live.sd_notify`). From then on it runs one test
 after another, each started by the controller's start command (Modbus register 100 = 1) or,
 with `[service] start = "auto"`, the first one at once:
 
@@ -40,11 +40,11 @@ import numpy as np
 
 from appliance.config import Config
 from appliance.errors import InputError
-from appliance.live_link import LiveLink
-from appliance.outputs import RunOutput
-from appliance.run_state import RunState, Transition
+from appliance.live.link import LiveLink
+from appliance.live.sd_notify import ServiceNotifier
+from appliance.run.outputs import RunOutput
+from appliance.run.state import RunState, Transition
 from appliance.runner import check_devices, run_test
-from appliance.sd_notify import ServiceNotifier
 from hal.errors import HardwareError
 
 IDLE_TICK_S = 0.1
@@ -256,7 +256,7 @@ class Service:
 def _warm_up_measurement() -> None:
     """Compile (or load from the cache) the measurement kernels before the service is ready."""
     from appliance.dic import synthetic
-    from appliance.tracking import MarkTracker, TrackerSettings
+    from appliance.measure.tracking import MarkTracker, TrackerSettings
 
     pattern = synthetic.dense_speckle(96, 96, seed=1, radius=2.0)
     reference = synthetic.render(pattern, 96, 96)

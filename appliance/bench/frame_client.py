@@ -8,7 +8,7 @@ register map (one request of 9 input registers per read) in two phases of `durat
   client thread gets, the latency each call's duration (perf_counter around `read_state`,
   so it includes decoding and building the `FrameState`);
 * **paced at 100 Hz**: a read every 10 ms on a fixed schedule, as the appliance's poller
-  reads (appliance/polled_frame.py); reported with the achieved rate and how many periods
+  reads (appliance/devices/polled_machine.py); reported with the achieved rate and how many periods
   started late (more than one period behind the schedule).
 
 The target: >= 100 state reads per second over TCP on loopback, with the p99 latency

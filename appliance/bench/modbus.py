@@ -133,13 +133,13 @@ def _points() -> tuple[np.ndarray, tuple[tuple[int, ...], tuple[int, ...]]]:
 def _measure_once(frames: int, *, with_client: bool) -> dict[str, Any]:
     """One live run of `frames` samples; the per-frame stamps and the client's view."""
     from appliance.config import Config, ModbusConfig
-    from appliance.gauges import Calibration, Gauge, StrainGauges, StrainGaugesLayout
-    from appliance.loop import MeasurementLoop
-    from appliance.measurement import StopCriteria, StrainSample
-    from appliance.modbus_server import StrainRegisterServer
-    from appliance.outputs import RunFacts
-    from appliance.run_state import RunStateMachine
-    from appliance.tracking import MarkTracker
+    from appliance.live.modbus_server import StrainRegisterServer
+    from appliance.measure.frame_measurer import StopCriteria, StrainSample
+    from appliance.measure.gauges import Calibration, Gauge, StrainGauges, StrainGaugesLayout
+    from appliance.measure.tracking import MarkTracker
+    from appliance.run.loop import MeasurementLoop
+    from appliance.run.outputs import RunFacts
+    from appliance.run.state import RunStateMachine
     from hal.camera.base import TriggerInfo, TriggerMode
     from hal.camera.sim import SimCamera
     from hal.clock import Pace, SimClock
@@ -358,7 +358,7 @@ def _poll(port: int) -> None:
     """The polling client (its own process): new frame ids with the time they were seen."""
     from pymodbus.client import ModbusTcpClient
 
-    from appliance.modbus_map import BY_NAME, decode
+    from appliance.live.modbus_map import BY_NAME, decode
 
     counter = BY_NAME["frame_counter"]
     client = ModbusTcpClient("127.0.0.1", port=port, timeout=5)

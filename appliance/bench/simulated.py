@@ -72,9 +72,9 @@ def cases(quick: bool) -> list[tuple[str, Config, str]]:
 
 def throughput(frames: int = 200) -> dict[str, Any]:
     """Tracking rate with 10 points on 1 MP frames of a simulated metal test, rendering apart."""
-    from appliance.gauges import Calibration, StrainGauges, place_marks
+    from appliance.measure.gauges import Calibration, StrainGauges, place_marks
+    from appliance.measure.tracking import MarkTracker, TrackerSettings
     from appliance.sim.world import PRESETS, SimWorld
-    from appliance.tracking import MarkTracker, TrackerSettings
     from hal.camera.base import CameraSettings, TriggerInfo, TriggerMode
 
     world = SimWorld(PRESETS["metal"], sensor_size=(1024, 1024), end_strain=0.01)

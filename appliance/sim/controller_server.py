@@ -310,7 +310,7 @@ class ModbusServedFrame:
 
     Args:
         frame: the frame served (the simulated one).
-        poll_rate_hz: the poller's rate (`appliance.polled_frame.PolledFrame`).
+        poll_rate_hz: the poller's rate (`appliance.devices.polled_machine.PolledFrame`).
         register_map: the layout served and read (the generic preset by default).
     """
 
@@ -334,7 +334,7 @@ class ModbusServedFrame:
 
         Raises HardwareConnectError when no port can be served or the client cannot connect.
         """
-        from appliance.polled_frame import PolledFrame
+        from appliance.devices.polled_machine import PolledFrame
         from hal.registry import frame_from_url
 
         if self._client is not None:
@@ -377,7 +377,7 @@ class ModbusServedFrame:
         self._require().return_to_start(speed_mm_min, timeout_s)
 
     def statistics(self) -> object:
-        """The poller's statistics (`appliance.polled_frame.PollStatistics`); None when
+        """The poller's statistics (`appliance.devices.polled_machine.PollStatistics`); None when
         closed."""
         return self._client.statistics() if self._client is not None else None
 

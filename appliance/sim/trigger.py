@@ -1,7 +1,7 @@
 """The simulated trigger microcontroller: camera trigger edges from a plan and the crosshead.
 
 It stands where the real microcontroller (`firmware_bridge`) stands in a simulated test: it
-is configured with a `appliance.trigger_plan.TriggerPlan` and armed at a simulation time, and
+is configured with a `appliance.plan.trigger_plan.TriggerPlan` and armed at a simulation time, and
 answers the simulated camera's trigger input (`hal.camera.sim.TriggerLine`) with the time of
 the next rising edge:
 
@@ -24,8 +24,8 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass
 
+from appliance.plan.trigger_plan import TriggerPlan
 from appliance.sim.machine import SimMachine
-from appliance.trigger_plan import TriggerPlan
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@
   bar model (`appliance.sim.bar`) loaded by a crosshead with an acceleration limit
   (`appliance.sim.crosshead`), together the machine (`appliance.sim.machine`);
 * the camera's view of it (`appliance.sim.scene`), through the preset's lens and sensor
-  (`appliance.optics`), framed so that both gauge marks stay in view to the end of the test;
+  (`appliance.plan.optics`), framed so that both gauge marks stay in view to the end of the test;
 * the devices, through the backend registry like any other: `sim://camera` and `sim://frame`
   receive the scene, the machine and the shared `SimClock` (fast or real time).
 
@@ -30,9 +30,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from appliance.config import Config
-from appliance.gauges import Gauge
-from appliance.measurement import StrainSample
-from appliance.optics import Optics
+from appliance.measure.frame_measurer import StrainSample
+from appliance.measure.gauges import Gauge
+from appliance.plan.optics import Optics
 from appliance.sim.bar import BarModel
 from appliance.sim.crosshead import Crosshead
 from appliance.sim.machine import SimMachine

@@ -56,7 +56,7 @@ entry is refused rather than started at a speed the controller decides.
 `statistics()` counts what happened (see its docstring). Calls are serialised by a lock, so
 a poller thread and a command from another thread may share one `ModbusFrame`.
 
-What it does not do: poll in the background (appliance/polled_frame.py does), read a
+What it does not do: poll in the background (appliance/devices/polled_machine.py does), read a
 controller clock, verify the controller's identity, check that a command took effect (a
 following `read_state` shows it), speak Modbus ASCII, UDP or TLS, or share a serial line
 between several clients (the device is opened exclusively).

@@ -22,9 +22,9 @@ import numpy as np
 import pytest
 
 from appliance.config import Config
-from appliance.gauges import Calibration, Gauge, StrainGaugesLayout, StrainReading
-from appliance.measurement import StrainSample
-from appliance.outputs import RunFacts
+from appliance.measure.frame_measurer import StrainSample
+from appliance.measure.gauges import Calibration, Gauge, StrainGaugesLayout, StrainReading
+from appliance.run.outputs import RunFacts
 from hal.camera.base import Frame
 from hal.frame.base import FrameState
 

@@ -25,8 +25,8 @@ import numpy as np
 import pytest
 
 from appliance.config import parse_config
-from appliance.loop import DeviceEvent
-from appliance.recording_reader import RecordingReader
+from appliance.recording.reader import RecordingReader
+from appliance.run.loop import DeviceEvent
 from appliance.runner import run_test
 from appliance.sim.controller_server import ControllerServer
 from firmware_bridge.simulator import SimulatedMcu

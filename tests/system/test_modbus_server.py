@@ -21,14 +21,14 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import SimDevice
 
-from appliance import modbus_map
 from appliance.bench.modbus import run_modbus_benchmark
 from appliance.config import ModbusConfig
 from appliance.errors import InputError
-from appliance.modbus_map import BY_NAME, RUN_STATE_CODES, StatusBit
-from appliance.modbus_server import ServerStartError, StrainRegisterServer
-from appliance.run_state import RunState
-from appliance.tracking import TrackStatus
+from appliance.live import modbus_map
+from appliance.live.modbus_map import BY_NAME, RUN_STATE_CODES, StatusBit
+from appliance.live.modbus_server import ServerStartError, StrainRegisterServer
+from appliance.measure.tracking import TrackStatus
+from appliance.run.state import RunState
 from hal.frame.base import FrameState
 from tests.system.modbus_peers import (
     free_tcp_port,

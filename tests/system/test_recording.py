@@ -20,8 +20,8 @@ import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
-from appliance.recording_format import JSON_SCHEMAS, decode_json
-from appliance.recording_reader import RecordingReader
+from appliance.recording.format import JSON_SCHEMAS, decode_json
+from appliance.recording.reader import RecordingReader
 from tests.system import rerun_peers
 
 EXTENSOMETER = str(Path(sys.executable).with_name("extensometer"))

@@ -16,8 +16,8 @@ import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
-from appliance.recording_reader import RecordingReader
-from appliance.viewer import proxy_url
+from appliance.live.viewer import proxy_url
+from appliance.recording.reader import RecordingReader
 from tests.system import rerun_peers
 from tests.system.modbus_peers import MBPOLL, free_tcp_port, mbpoll_read_tcp, mbpoll_tcp
 from tests.system.notify_harness import NotifyHarness

@@ -234,7 +234,7 @@ def test_the_example_configuration_loads_with_the_service_defaults():
 
 SERVICE_STANDIN = """
 import signal, subprocess, sys, time
-from appliance.sd_notify import ServiceNotifier
+from appliance.live.sd_notify import ServiceNotifier
 
 mode, frames, frame_period_s = sys.argv[1], int(sys.argv[2]), float(sys.argv[3])
 if mode == "fail-at-start":

@@ -1,7 +1,7 @@
 """The Rerun viewer against the real rerun CLI on loopback: served, pushed and saved tests.
 
 Every test runs a short simulated measurement (the real loop, tracker and gauges) through
-`appliance.viewer.RerunViewer`, lets a headless rerun CLI receive it, checks the file with
+`appliance.live.viewer.RerunViewer`, lets a headless rerun CLI receive it, checks the file with
 `rerun rrd verify` and reads the strain back from it. The CLI's analytics are switched off
 before it first runs; every peer binds 127.0.0.1.
 """
@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 from appliance.config import RerunConfig
-from appliance.viewer import (
+from appliance.live.viewer import (
     AXIAL_STRAIN,
     EVENTS,
     FORCE,
@@ -239,10 +239,10 @@ def test_a_remote_viewer_that_went_away_costs_one_warning_and_no_error(tmp_path,
         proxy.wait(10)
     for sample in recorded.samples[10:]:
         viewer(sample)
-    with caplog.at_level(logging.WARNING, logger="appliance.viewer"):
+    with caplog.at_level(logging.WARNING, logger="appliance.live.viewer"):
         viewer.end(recorded.result)
         viewer.close()
-    warnings = [r for r in caplog.records if r.name == "appliance.viewer"]
+    warnings = [r for r in caplog.records if r.name == "appliance.live.viewer"]
     assert len(warnings) == 1, [r.getMessage() for r in warnings]
     assert "\n" not in warnings[0].getMessage() and viewer.problem
     assert viewer.samples_shown == 20

@@ -32,12 +32,12 @@ import numpy as np
 
 from appliance.config import Config, RerunConfig
 from appliance.dic import synthetic
-from appliance.gauges import Calibration, Gauge, StrainGauges, StrainGaugesLayout
-from appliance.loop import LoopResult, MeasurementLoop
-from appliance.measurement import StopCriteria, StrainSample
-from appliance.outputs import RunFacts
-from appliance.tracking import MarkTracker, TrackerSettings
-from appliance.viewer import RerunViewer
+from appliance.live.viewer import RerunViewer
+from appliance.measure.frame_measurer import StopCriteria, StrainSample
+from appliance.measure.gauges import Calibration, Gauge, StrainGauges, StrainGaugesLayout
+from appliance.measure.tracking import MarkTracker, TrackerSettings
+from appliance.run.loop import LoopResult, MeasurementLoop
+from appliance.run.outputs import RunFacts
 from hal.camera.base import Region, TriggerInfo, TriggerMode
 from hal.camera.sim import SimCamera
 from hal.clock import SimClock

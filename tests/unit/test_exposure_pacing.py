@@ -5,15 +5,15 @@ from __future__ import annotations
 
 import pytest
 
-from appliance.exposure_pacing import ExposurePacer
-from appliance.optics import Optics
-from appliance.planner import plan_exposure
+from appliance.plan.exposure import plan_exposure
+from appliance.plan.optics import Optics
+from appliance.plan.pacing import ExposurePacer
+from appliance.plan.trigger_plan import TriggerReplanner, plan_triggers
 from appliance.sim.bar import BarModel
 from appliance.sim.machine import SimMachine
 from appliance.sim.materials import ElasticPlastic
 from appliance.sim.specimen import Specimen
 from appliance.sim.trigger import SimTriggerController
-from appliance.trigger_plan import TriggerReplanner, plan_triggers
 from hal.camera.base import TriggerInfo, TriggerMode
 from hal.frame.base import FrameState
 from tests.unit.test_loop import StretchingScene, _camera

@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from appliance.gauges import Calibration, Gauge, StrainGauges, place_marks
+from appliance.measure.gauges import Calibration, Gauge, StrainGauges, place_marks
 
 
 def stretch(points, centre, axial, lateral):

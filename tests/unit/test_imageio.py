@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from appliance.cli.image_files import read_grey
 from appliance.errors import InputError
-from appliance.imageio import read_grey
 
 GREY = (np.arange(48 * 64) * 7 % 256).astype(np.uint8).reshape(48, 64)
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from appliance.iso9513 import CLASSES, best_class
+from appliance.run.iso9513 import CLASSES, best_class
 
 
 def test_limits_are_the_larger_of_relative_and_absolute():

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from appliance.dic import synthetic
-from appliance.gauges import Calibration, Gauge, StrainGauges
-from appliance.loop import MeasurementLoop
-from appliance.measurement import StopCriteria
-from appliance.run_state import RunEvent, RunState
-from appliance.tracking import MarkTracker, TrackerSettings
+from appliance.measure.frame_measurer import StopCriteria
+from appliance.measure.gauges import Calibration, Gauge, StrainGauges
+from appliance.measure.tracking import MarkTracker, TrackerSettings
+from appliance.run.loop import MeasurementLoop
+from appliance.run.state import RunEvent, RunState
 from hal.camera.base import Region, TriggerInfo, TriggerMode
 from hal.camera.sim import SimCamera
 from hal.clock import SimClock

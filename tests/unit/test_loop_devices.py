@@ -17,10 +17,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from appliance.loop import DeviceEvent, MeasurementLoop
-from appliance.measurement import StopCriteria
-from appliance.polled_frame import PolledFrame
-from appliance.run_state import RunState
+from appliance.devices.polled_machine import PolledFrame
+from appliance.measure.frame_measurer import StopCriteria
+from appliance.run.loop import DeviceEvent, MeasurementLoop
+from appliance.run.state import RunState
 from hal.camera.base import Frame, Region
 from hal.errors import HardwareConnectError, HardwareTimeout
 from hal.frame.base import FrameState

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from pymodbus.client.mixin import ModbusClientMixin
 
-from appliance import modbus_map
-from appliance.modbus_map import (
+from appliance.live import modbus_map
+from appliance.live.modbus_map import (
     BY_NAME,
     MAP_SIZE,
     MEASUREMENT_BLOCK,
@@ -22,7 +22,7 @@ from appliance.modbus_map import (
     RegisterType,
     StatusBit,
 )
-from appliance.run_state import RunState
+from appliance.run.state import RunState
 
 README = Path(__file__).resolve().parents[2] / "README.md"
 SECTION = "## Modbus register map"
@@ -192,6 +192,6 @@ def test_readme_register_table_matches_the_map():
     if table is None:
         pytest.skip(f"README.md has no {SECTION!r} section yet; paste render_markdown_table()")
     assert table == modbus_map.render_markdown_table(), (
-        "README register table differs from appliance.modbus_map; regenerate it with "
-        "python -c 'from appliance.modbus_map import render_markdown_table as t; print(t())'"
+        "README register table differs from appliance.live.modbus_map; regenerate it with "
+        "python -c 'from appliance.live.modbus_map import render_markdown_table as t; print(t())'"
     )

@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from appliance.optics import Optics
+from appliance.plan.optics import Optics
 
 
 @given(

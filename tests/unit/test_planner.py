@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from appliance.optics import Optics
-from appliance.planner import ExposurePlan, motion_blur_length, plan_exposure
+from appliance.plan.exposure import ExposurePlan, motion_blur_length, plan_exposure
+from appliance.plan.optics import Optics
 
 # Table 1 of Zhang et al. (2016): motion blur in px; rows = crosshead speed, columns = focal
 # length. The stored copies of the paper do not give the table's inputs. The inputs below are a

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
+from appliance.cli.points_file import read_points
 from appliance.errors import InputError
-from appliance.points_file import read_points
 
 
 def write(tmp_path, text):

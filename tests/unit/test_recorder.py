@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 
 from appliance.config import Config, RecordConfig
-from appliance.frame_windows import cut_windows
-from appliance.gauges import Calibration, Gauge, StrainGaugesLayout, StrainReading
-from appliance.loop import LoopResult
-from appliance.measurement import StrainSample
-from appliance.outputs import RunFacts
-from appliance.recorder import McapRecorder, RecordingError
-from appliance.recording_reader import RecordingReader
-from appliance.tracking import ReadRegion
+from appliance.measure.frame_measurer import StrainSample
+from appliance.measure.frame_windows import cut_windows
+from appliance.measure.gauges import Calibration, Gauge, StrainGaugesLayout, StrainReading
+from appliance.measure.tracking import ReadRegion
+from appliance.recording.reader import RecordingReader
+from appliance.recording.writer import McapRecorder, RecordingError
+from appliance.run.loop import LoopResult
+from appliance.run.outputs import RunFacts
 from hal.camera.base import Frame
 
 SIZE = 256

@@ -2,7 +2,7 @@ import itertools
 
 import pytest
 
-from appliance.run_state import (
+from appliance.run.state import (
     TRANSITIONS,
     IllegalTransition,
     RunEvent,

@@ -6,7 +6,7 @@ import threading
 
 import pytest
 
-from appliance.sd_notify import NOTIFY_VARIABLES, ServiceNotifier, child_environment
+from appliance.live.sd_notify import NOTIFY_VARIABLES, ServiceNotifier, child_environment
 from tests.system.notify_harness import NotifySocket
 
 RECEIVE_TIMEOUT_S = 5.0
@@ -130,7 +130,7 @@ def test_without_notify_socket_everything_is_a_no_op():
 
 
 def test_an_unusable_socket_name_is_logged_and_ignored(caplog):
-    with caplog.at_level(logging.WARNING, logger="appliance.sd_notify"):
+    with caplog.at_level(logging.WARNING, logger="appliance.live.sd_notify"):
         notifier = ServiceNotifier({"NOTIFY_SOCKET": "vsock:2:1234"})
     assert not notifier.enabled and notifier.ready() is False
     assert "vsock:2:1234" in caplog.text
@@ -153,7 +153,7 @@ def test_a_lost_listener_is_logged_once_and_never_raises(tmp_path, caplog):
     name = str(tmp_path / "notify")
     NotifySocket(name).close()
     notifier = ServiceNotifier({"NOTIFY_SOCKET": name, "WATCHDOG_USEC": "1"})
-    with caplog.at_level(logging.INFO, logger="appliance.sd_notify"):
+    with caplog.at_level(logging.INFO, logger="appliance.live.sd_notify"):
         assert notifier.ready() is False
         assert notifier.status("still here") is False
         assert notifier.watchdog() is False
@@ -175,7 +175,7 @@ def test_a_full_queue_drops_notifications_instead_of_blocking(receiver, caplog):
         outcomes.extend(notifier.status(f"frame {i}") for i in range(5000))
 
     sender = threading.Thread(target=flood, daemon=True)
-    with caplog.at_level(logging.WARNING, logger="appliance.sd_notify"):
+    with caplog.at_level(logging.WARNING, logger="appliance.live.sd_notify"):
         sender.start()
         sender.join(timeout=60)
     assert not sender.is_alive(), "a notification blocked on a full socket queue"

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from appliance.dic import synthetic
-from appliance.frame_windows import cut_windows, paste_windows
-from appliance.tracking import MarkTracker, TrackerSettings, TrackStatus
+from appliance.measure.frame_windows import cut_windows, paste_windows
+from appliance.measure.tracking import MarkTracker, TrackerSettings, TrackStatus
 
 HEIGHT, WIDTH = 640, 200
 CENTRE_X = 100.0

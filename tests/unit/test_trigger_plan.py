@@ -4,9 +4,9 @@ import math
 
 import pytest
 
-from appliance.optics import Optics
-from appliance.planner import plan_exposure
-from appliance.trigger_plan import TriggerReplanner, plan_triggers
+from appliance.plan.exposure import plan_exposure
+from appliance.plan.optics import Optics
+from appliance.plan.trigger_plan import TriggerReplanner, plan_triggers
 
 OPTICS = Optics(25.0, 250.0, 5.0)
 TICK_HZ = 2_000_000.0

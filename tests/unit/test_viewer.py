@@ -8,8 +8,8 @@ import pytest
 
 from appliance.config import RerunConfig
 from appliance.errors import InputError
-from appliance.loop import LoopResult
-from appliance.viewer import RerunService, RerunViewer, has_sinks, proxy_url, viewer_blueprint
+from appliance.live.viewer import RerunService, RerunViewer, has_sinks, proxy_url, viewer_blueprint
+from appliance.run.loop import LoopResult
 
 
 def _free_port() -> int:

@@ -1,6 +1,6 @@
 """The Modbus strain server: the machine controller reads strain from it and writes commands.
 
-`StrainRegisterServer` serves the register map of `appliance.modbus_map` over Modbus TCP, over
+`StrainRegisterServer` serves the register map of `appliance.live.modbus_map` over Modbus TCP, over
 Modbus RTU on a serial device, or both at once (one register image), as `[modbus]` in the
 configuration says. The pymodbus servers run on an asyncio loop in a background thread; the
 measurement never waits for the network:
@@ -72,10 +72,10 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from appliance import modbus_map
 from appliance.config import ModbusConfig, parse_address
 from appliance.errors import InputError
-from appliance.modbus_map import (
+from appliance.live import modbus_map
+from appliance.live.modbus_map import (
     BY_NAME,
     COMMANDS,
     GAUGE_LENGTH_COMMAND,
@@ -88,11 +88,11 @@ from appliance.modbus_map import (
     RegisterType,
     StatusBit,
 )
-from appliance.run_state import RunState
+from appliance.run.state import RunState
 
 if TYPE_CHECKING:
-    from appliance.measurement import StrainSample
-    from appliance.outputs import RunFacts
+    from appliance.measure.frame_measurer import StrainSample
+    from appliance.run.outputs import RunFacts
 
 _log = logging.getLogger(__name__)
 

@@ -14,7 +14,7 @@ the tracker does in between (reference updates, re-acquisition):
     Poisson's ratio      nu = -e_transverse / e_axial   (reported once |e_axial| >= 1e-4)
 
 Calibration: `scale_mm_per_px` from the optics (pixel size / magnification, see
-`appliance.optics`) or from a known distance in the image.
+`appliance.plan.optics`) or from a known distance in the image.
 """
 
 from __future__ import annotations

@@ -1,11 +1,11 @@
 """One frame to one strain sample: tracking, strain, validity and the end of a test.
 
 `FrameMeasurer` is the whole measurement of a frame, the same code for the live loop
-(`appliance.loop`) and for the replay of a recording (`appliance.replay`), so a replay on the
+(`appliance.run.loop`) and for the replay of a recording (`appliance.replay`), so a replay on the
 recorded pixels reproduces the recorded strain exactly:
 
-1. the marks are tracked (`appliance.tracking.MarkTracker`) at the frame's device time;
-2. their positions become strains (`appliance.gauges.StrainGauges`); a zero request makes
+1. the marks are tracked (`appliance.measure.tracking.MarkTracker`) at the frame's device time;
+2. their positions become strains (`appliance.measure.gauges.StrainGauges`); a zero request makes
    this frame's gauge lengths the new L0 first;
 3. the sample is *valid* when every axial gauge mark had a measured point and the force has
    not fallen as after a break (a frame of a broken specimen is not a strain);
@@ -23,9 +23,9 @@ from typing import Any
 
 import numpy as np
 
-from appliance.frame_windows import ImageWindow, cut_windows
-from appliance.gauges import StrainGauges, StrainReading
-from appliance.tracking import MarkTracker, TrackStatus
+from appliance.measure.frame_windows import ImageWindow, cut_windows
+from appliance.measure.gauges import StrainGauges, StrainReading
+from appliance.measure.tracking import MarkTracker, TrackStatus
 from hal.camera.base import Frame
 from hal.frame.base import FrameState
 
@@ -42,7 +42,7 @@ class StrainSample:
         exposure_us: exposure of the frame, us.
         reading: strains and elongation.
         positions: (n, 2) tracked positions, px.
-        status: (n,) `appliance.tracking.TrackStatus`.
+        status: (n,) `appliance.measure.tracking.TrackStatus`.
         zncc: (n,) ZNCC of each point.
         gradients: (n, 4) displacement gradients (ux, uy, vx, vy) of each point relative to
             its mark's current reference (the first-order shape function).

@@ -1,6 +1,6 @@
 """`extensometer info FILE.mcap`: what a recording holds, and whether it is whole.
 
-The file is read front to back with every CRC checked (`appliance.recording_reader`), so the
+The file is read front to back with every CRC checked (`appliance.recording.reader`), so the
 summary doubles as an integrity check: a file cut short or corrupted is reported with the
 place of the damage, and everything before it is still counted.
 """
@@ -12,8 +12,8 @@ import json
 from pathlib import Path
 from typing import Any, TextIO
 
-from appliance.recording_format import TOPIC_STRAIN
-from appliance.recording_reader import RecordingReader, config_table
+from appliance.recording.format import TOPIC_STRAIN
+from appliance.recording.reader import RecordingReader, config_table
 
 
 def _utc(unix_ns: int) -> str:

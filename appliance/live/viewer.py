@@ -1,6 +1,6 @@
 """Live and remote monitoring of a test in a Rerun viewer: `RerunViewer` and `RerunService`.
 
-`RerunViewer` is a `appliance.outputs.RunOutput` that follows test after test and streams
+`RerunViewer` is a `appliance.run.outputs.RunOutput` that follows test after test and streams
 each to Rerun (rerun-sdk 0.41) through the sinks `[rerun]` chooses, in any combination:
 
     serve   = "HOST:PORT"   a gRPC server remote viewers connect to:
@@ -84,7 +84,7 @@ images it will show. A thread of the viewer logs: the scalar series of every bat
 from the queue go out as columns (`send_columns`), images and overlays row by row. `end()`
 lets the thread drain the queue, log the exit status and the counts, flush and close the
 stream, and waits for it at most `close_timeout_s`; a viewer that went away (a remote viewer
-that hung up, a proxy that is down) costs one warning on the `appliance.viewer` logger, never
+that hung up, a proxy that is down) costs one warning on the `appliance.live.viewer` logger, never
 an exception.
 """
 
@@ -109,11 +109,11 @@ import rerun.blueprint as rrb
 
 from appliance.config import RerunConfig, parse_address
 from appliance.errors import InputError
-from appliance.gauges import Gauge
-from appliance.loop import LoopResult
-from appliance.measurement import StrainSample
-from appliance.outputs import RunFacts
-from appliance.tracking import TrackStatus
+from appliance.measure.frame_measurer import StrainSample
+from appliance.measure.gauges import Gauge
+from appliance.measure.tracking import TrackStatus
+from appliance.run.loop import LoopResult
+from appliance.run.outputs import RunFacts
 
 logger = logging.getLogger(__name__)
 
@@ -380,7 +380,7 @@ class RerunViewer:
         """Drain, log how the test ended, flush and close its stream (at most `close_timeout_s`).
 
         The gRPC server stays up for the next test. Never raises for a sink that failed or a
-        viewer that went away: that is one warning on the `appliance.viewer` logger (and
+        viewer that went away: that is one warning on the `appliance.live.viewer` logger (and
         `problem`).
         """
         if self._test is not None:

@@ -1,7 +1,7 @@
 """The MCAP recording of a test, written on its own thread; exact enough to replay.
 
-`McapRecorder` is an output (`appliance.outputs.RunOutput`) that writes one MCAP file per
-test in the format of `appliance.recording_format`: ZSTD chunks, chunk CRCs and the data
+`McapRecorder` is an output (`appliance.run.outputs.RunOutput`) that writes one MCAP file per
+test in the format of `appliance.recording.format`: ZSTD chunks, chunk CRCs and the data
 section CRC on. Every record is encoded on the publishing thread and written by a writer
 thread, so the file system never stalls the measurement directly.
 
@@ -40,10 +40,8 @@ from mcap.writer import CompressionType, Writer
 from appliance import __version__
 from appliance.config import RecordConfig, config_to_table
 from appliance.errors import InputError
-from appliance.loop import LoopResult
-from appliance.measurement import StrainSample
-from appliance.outputs import RunFacts
-from appliance.recording_format import (
+from appliance.measure.frame_measurer import StrainSample
+from appliance.recording.format import (
     FORMAT_NAME,
     FORMAT_VERSION,
     META_PREFIX,
@@ -70,6 +68,8 @@ from appliance.recording_format import (
     strain_record,
     trigger_record,
 )
+from appliance.run.loop import LoopResult
+from appliance.run.outputs import RunFacts
 
 MAX_DEGRADATION_LEVEL = 10
 

@@ -15,7 +15,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from appliance.measurement import StrainSample
+from appliance.measure.frame_measurer import StrainSample
 
 COLUMNS: tuple[str, ...] = (
     "index",

@@ -3,15 +3,15 @@
 `LiveLink` ties a test run by `appliance.runner.run_test` to what watches and drives it from
 outside, for `extensometer run` (one test) and `extensometer serve` (one test after another):
 
-* the Modbus strain server (`appliance.modbus_server`): registers written on the measurement
+* the Modbus strain server (`appliance.live.modbus_server`): registers written on the measurement
   thread with every frame, the run state mirrored in the status bits, and the controller's
   commands (stop and zero act on the running test; start and the gauge length set point are
   the caller's to decide, through `on_start` and `on_gauge_length`);
-* the viewer (`appliance.viewer`), an output of every test;
+* the viewer (`appliance.live.viewer`), an output of every test;
 * the service manager's watchdog, pinged from the measurement thread with every frame, and
   from the acquisition thread while the loop waits through a camera outage (the loop is
   alive; a hung one stops the pings);
-* device events (`appliance.loop.DeviceEvent`): a camera outage clears data-valid.
+* device events (`appliance.run.loop.DeviceEvent`): a camera outage clears data-valid.
 
 `run_arguments()` gives the keyword arguments of `run_test` that connect a test.
 """
@@ -24,12 +24,12 @@ from collections.abc import Callable
 from typing import Any
 
 from appliance.config import Config
-from appliance.loop import DeviceEvent, LoopResult, MeasurementLoop
-from appliance.measurement import StrainSample
-from appliance.modbus_server import StrainRegisterServer
-from appliance.outputs import RunFacts, RunOutput
-from appliance.run_state import RunState, Transition
-from appliance.sd_notify import ServiceNotifier
+from appliance.live.modbus_server import StrainRegisterServer
+from appliance.live.sd_notify import ServiceNotifier
+from appliance.measure.frame_measurer import StrainSample
+from appliance.run.loop import DeviceEvent, LoopResult, MeasurementLoop
+from appliance.run.outputs import RunFacts, RunOutput
+from appliance.run.state import RunState, Transition
 
 
 class LiveLink:

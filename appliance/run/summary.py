@@ -23,9 +23,9 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from appliance.iso9513 import best_class
-from appliance.loop import LoopResult
-from appliance.measurement import StrainSample
+from appliance.measure.frame_measurer import StrainSample
+from appliance.run.iso9513 import best_class
+from appliance.run.loop import LoopResult
 
 REL_ERROR_MIN_STRAIN = 0.01
 SMALL_ELONGATION_UM = 300.0

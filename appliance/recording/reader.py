@@ -1,6 +1,6 @@
 """Reading a test recording front to back, up to any damage.
 
-`RecordingReader` reads an MCAP file of `appliance.recording_format` sequentially (it never
+`RecordingReader` reads an MCAP file of `appliance.recording.format` sequentially (it never
 needs the summary section at the end, so a file cut short by a crash reads up to its last
 whole chunk), validating chunk and data-section CRCs. It gathers the metadata and the
 attachments, counts the messages of every topic, and yields the samples one by one, each
@@ -21,7 +21,7 @@ from mcap.records import Attachment, Channel, DataEnd, Footer, Message, Metadata
 from mcap.stream_reader import StreamReader
 
 from appliance.errors import InputError
-from appliance.recording_format import (
+from appliance.recording.format import (
     FORMAT_NAME,
     META_PREFIX,
     TOPIC_MACHINE,

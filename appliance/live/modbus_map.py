@@ -2,7 +2,7 @@
 
 `REGISTER_MAP` is the whole map: one `Register` per value (name, zero-based address, register
 count, data type, access, unit, description, accepted values of a writable one). The server
-(`appliance.modbus_server`) builds its register image and its write checks from it, the README
+(`appliance.live.modbus_server`) builds its register image and its write checks from it, the README
 table is rendered from it (`render_markdown_table`), and the tests compare the two.
 
 Conventions the map follows:
@@ -44,7 +44,7 @@ from typing import Literal
 
 from pymodbus.client.mixin import ModbusClientMixin
 
-from appliance.run_state import RunState
+from appliance.run.state import RunState
 
 WordOrder = Literal["big", "little"]
 Value = int | float

@@ -42,8 +42,8 @@ import dataclasses
 import time
 from typing import Any
 
-from appliance.mcu_trigger import McuTriggerLine
-from appliance.trigger_plan import TriggerPlan
+from appliance.devices.mcu_trigger import McuTriggerLine
+from appliance.plan.trigger_plan import TriggerPlan
 from firmware_bridge.clocksync import ClockNotSynced
 from firmware_bridge.link import FirmwareError, TriggerEvent
 from hal.camera.base import Camera, CameraSettings, Frame, TriggerInfo

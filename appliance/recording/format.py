@@ -1,6 +1,6 @@
 """The format of a test recording: MCAP channels, their schemas, and how records are encoded.
 
-One MCAP file per test (written by `appliance.recorder`, read by `appliance.replay` and
+One MCAP file per test (written by `appliance.recording.writer`, read by `appliance.replay` and
 `extensometer info`). Log time of every per-frame message is the frame's acquisition time
 (start of exposure) as UNIX time in ns; the message `sequence` is the sample index, so the
 messages of one frame can be gathered from every channel. Per frame, in this order:
@@ -45,9 +45,9 @@ from foxglove_schemas_protobuf.Log_pb2 import Log
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from mcap_protobuf.schema import build_file_descriptor_set
 
-from appliance.frame_windows import ImageWindow
-from appliance.measurement import StrainSample
-from appliance.tracking import TrackStatus
+from appliance.measure.frame_measurer import StrainSample
+from appliance.measure.frame_windows import ImageWindow
+from appliance.measure.tracking import TrackStatus
 from hal.frame.base import FrameState
 
 FORMAT_NAME = "extensometer-mcap"

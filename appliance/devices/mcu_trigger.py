@@ -18,7 +18,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-from appliance.trigger_plan import TriggerPlan
+from appliance.plan.trigger_plan import TriggerPlan
 from firmware_bridge.link import FirmwareError, McuLink, TriggerEvent
 from firmware_bridge.messages import TriggerSource
 from hal.errors import HardwareFault
@@ -28,7 +28,7 @@ class McuTriggerLine:
     """The real microcontroller's trigger as the appliance drives it: the plan sent and armed
     (`start`), re-timed (`retime`), disarmed (`stop`); and, in a simulated test, the
     simulated camera's trigger input fed by its TRIGGER events (`next_edge_s`). A real camera
-    on its output reads the events through `appliance.trigger_stamping` instead.
+    on its output reads the events through `appliance.devices.trigger_stamping` instead.
 
     Args:
         link: a connected link.

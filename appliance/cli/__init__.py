@@ -355,7 +355,7 @@ def _with_live_options(config, args: argparse.Namespace):
 
 def _viewer(config):
     """The Rerun viewer the configuration asks for, or None."""
-    from appliance.viewer import RerunViewer, has_sinks
+    from appliance.live.viewer import RerunViewer, has_sinks
 
     return RerunViewer(config.rerun) if has_sinks(config.rerun) else None
 
@@ -390,7 +390,7 @@ def _run_config(args: argparse.Namespace):
 
 
 def _run(args: argparse.Namespace) -> int:
-    from appliance.live_link import LiveLink
+    from appliance.live.link import LiveLink
     from appliance.runner import print_summary, run_test
     from hal.errors import HardwareError
 
@@ -422,7 +422,7 @@ def _run(args: argparse.Namespace) -> int:
 
 def _serve(args: argparse.Namespace) -> int:
     from appliance.config import Config, load_config
-    from appliance.sd_notify import ServiceNotifier
+    from appliance.live.sd_notify import ServiceNotifier
     from appliance.service import Service
 
     config = load_config(args.config) if args.config else Config()
@@ -469,7 +469,7 @@ def _replay(args: argparse.Namespace) -> int:
 
 
 def _info(args: argparse.Namespace) -> int:
-    from appliance.recording_info import print_info, recording_info
+    from appliance.recording.info import print_info, recording_info
 
     info = recording_info(args.recording)
     if args.json:
@@ -484,7 +484,7 @@ def _info(args: argparse.Namespace) -> int:
 
 
 def _add_plan_parser(commands) -> None:
-    from appliance.planner import DEFAULT_MAX_PERIOD_S
+    from appliance.plan.exposure import DEFAULT_MAX_PERIOD_S
 
     plan = commands.add_parser(
         "plan",
@@ -549,9 +549,9 @@ def _add_plan_parser(commands) -> None:
 
 
 def _track(args: argparse.Namespace) -> int:
+    from appliance.cli.image_files import read_grey
+    from appliance.cli.points_file import read_points
     from appliance.dic.correlation import Correlator, PointStatus
-    from appliance.imageio import read_grey
-    from appliance.points_file import read_points
 
     points = read_points(args.points)
     reference = read_grey(args.reference)
@@ -648,8 +648,8 @@ def _emit(args: argparse.Namespace, measured: list[dict]) -> None:
 
 
 def _plan(args: argparse.Namespace) -> int:
-    from appliance.optics import Optics
-    from appliance.planner import motion_blur_length, plan_exposure
+    from appliance.plan.exposure import motion_blur_length, plan_exposure
+    from appliance.plan.optics import Optics
 
     if not args.object_distance_mm > args.focal_length_mm:
         raise InputError(

@@ -1,6 +1,6 @@
 """Trigger planning: the exposure plan turned into what the trigger microcontroller executes.
 
-The exposure planner (`appliance.planner.plan_exposure`) gives, for a crosshead speed, the
+The exposure planner (`appliance.plan.exposure.plan_exposure`) gives, for a crosshead speed, the
 longest exposure within the blur budget and the longest frame period within the tracker's
 capture range. The trigger microcontroller fires the camera either
 
@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from appliance.planner import ExposurePlan
+from appliance.plan.exposure import ExposurePlan
 
 DEFAULT_PULSE_WIDTH_US = 60.0
 

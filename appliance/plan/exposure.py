@@ -2,7 +2,7 @@
 
 During an exposure of T seconds a point of the specimen moving at V mm/s in the object plane
 travels V T mm, and its image is smeared over a line on the sensor of (Zhang et al. 2016, Eq. 9,
-with the magnification m = v / u = f / (u - f) of Eq. 7-8, see `appliance.optics`)
+with the magnification m = v / u = f / (u - f) of Eq. 7-8, see `appliance.plan.optics`)
 
     blur_um = V[mm/s] * T[s] * m * 1000                                   (Eq. 9)
     blur_px = blur_um / p                 p = pixel pitch, um
@@ -31,7 +31,7 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 
-from appliance.optics import Optics
+from appliance.plan.optics import Optics
 
 DEFAULT_MAX_PERIOD_S = 1.0
 """Frame period planned when nothing moves (speed 0), s."""

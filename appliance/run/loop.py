@@ -6,7 +6,7 @@
   When the frames queue is full it drops the frame and counts it (a real camera cannot wait),
   unless the loop is told to block (a simulation running as fast as possible, whose clock
   only moves when a frame is fetched).
-* The tracking thread measures the frame (`appliance.measurement.FrameMeasurer`: marks,
+* The tracking thread measures the frame (`appliance.measure.frame_measurer.FrameMeasurer`: marks,
   strain, validity, stop criteria and break detection), calls the *immediate* sinks (the
   Modbus registers and the watchdog, which must see the strain of this frame before the next
   one is measured; they must be fast and must not block) and hands the `StrainSample` on.
@@ -31,7 +31,7 @@ Devices that go away (real hardware):
   crosshead are missing, and flagged) while the strain is still measured; listeners hear
   when the controller is lost and when it is back.
 
-The run follows `appliance.run_state`: ARMED while the reference is taken, RUNNING while
+The run follows `appliance.run.state`: ARMED while the reference is taken, RUNNING while
 measuring, STOPPING while the queues drain, then IDLE; ABORTED on an operator interrupt and
 FAULT on an error of a device or of the measurement, each with its reason. Samples measured
 before an abort or a fault are kept and published.
@@ -47,10 +47,15 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from appliance.gauges import StrainGauges
-from appliance.measurement import BreakDetection, FrameMeasurer, StopCriteria, StrainSample
-from appliance.run_state import RunEvent, RunState, RunStateMachine
-from appliance.tracking import MarkTracker
+from appliance.measure.frame_measurer import (
+    BreakDetection,
+    FrameMeasurer,
+    StopCriteria,
+    StrainSample,
+)
+from appliance.measure.gauges import StrainGauges
+from appliance.measure.tracking import MarkTracker
+from appliance.run.state import RunEvent, RunState, RunStateMachine
 from hal.camera.base import Camera, Frame
 from hal.errors import HardwareConnectError, HardwareError, HardwareTimeout
 from hal.frame.base import FrameState, TensileFrame
@@ -143,7 +148,7 @@ class MeasurementLoop:
         machine_listeners: called with the time of every frame after the reference (s since
             the reference, as `StrainSample.time_s`) and the controller reading taken with it
             (None when there is none), on the acquisition thread before the frame is queued
-            (the exposure pacing, `appliance.exposure_pacing`).
+            (the exposure pacing, `appliance.plan.pacing`).
         wall: wall clock, s (injected for tests).
     """
 
@@ -200,7 +205,7 @@ class MeasurementLoop:
 
     def request_zero(self) -> None:
         """Zero the strain at the next measured frame (thread-safe); see
-        `appliance.measurement.FrameMeasurer.zero`."""
+        `appliance.measure.frame_measurer.FrameMeasurer.zero`."""
         self._zero_requested.set()
 
     def run(self, criteria: StopCriteria) -> LoopResult:

@@ -3,7 +3,7 @@
 The exposure plan of a test is made for its configured speed. When the speed changes during
 the test (a two-speed test program, an operator's override) the blur of an exposure and the
 motion from one frame to the next change with it. `ExposurePacer` watches the speed the frame
-controller reports with every frame and, when `appliance.trigger_plan.TriggerReplanner` says
+controller reports with every frame and, when `appliance.plan.trigger_plan.TriggerReplanner` says
 a new plan is due, makes one for the new speed and applies it while acquiring:
 
 * the camera's exposure (`Camera.set_exposure`), so the blur stays within budget;
@@ -29,7 +29,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
-from appliance.trigger_plan import TriggerPlan, TriggerReplanner
+from appliance.plan.trigger_plan import TriggerPlan, TriggerReplanner
 from hal.camera.base import Camera
 from hal.errors import HardwareError
 from hal.frame.base import FrameState

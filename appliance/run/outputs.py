@@ -20,9 +20,9 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from appliance.config import Config
-from appliance.gauges import Calibration, StrainGaugesLayout
-from appliance.loop import LoopResult
-from appliance.measurement import StrainSample
+from appliance.measure.frame_measurer import StrainSample
+from appliance.measure.gauges import Calibration, StrainGaugesLayout
+from appliance.run.loop import LoopResult
 from hal.camera.base import Frame
 
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from appliance.tracking import ReadRegion
+from appliance.measure.tracking import ReadRegion
 
 
 @dataclass(frozen=True)
