@@ -5,8 +5,10 @@ rejected, and every error is one line naming the file, the table and the key:
 `run.toml: [camera] exposure_us: must be > 0, got -5`. Missing keys take the defaults below,
 so an empty file is a valid configuration of the simulated test.
 
-The schema is the dataclasses of this module: a table per section, a field per key; a field's
-`metadata` may give `minimum`, `maximum` (inclusive) and `choices`.
+The schema is the dataclasses of this module, a table per section and a field per key, and
+`appliance.measure.tracking.TrackerSettings`, which is the `[tracking]` table (the tracker's
+settings are defined once, where the tracker lives). A field's `metadata` may give `minimum`,
+`maximum` (inclusive), `choices` and `odd`; a field with `configurable` False is not a key.
 """
 
 from __future__ import annotations
@@ -21,10 +23,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from appliance.errors import InputError, read_user_text
+from appliance.measure.tracking import TrackerSettings
 from hal.errors import HardwareConfigError
 
 if TYPE_CHECKING:
-    from hal.frame.register_map import RegisterMap
+    from hal.machine.register_map import RegisterMap
 
 
 def _range(minimum: float | None = None, maximum: float | None = None, **extra: Any) -> dict:
@@ -65,20 +68,20 @@ class CameraConfig:
 
 
 @dataclass(frozen=True)
-class FrameConfig:
-    """[frame]: the tensile frame's controller.
+class MachineConfig:
+    """[machine]: the testing machine's controller.
 
-    `url` names it (`sim://frame`, `modbus-tcp://192.168.10.5:502?unit=1`,
+    `url` names it (`sim://machine`, `modbus-tcp://192.168.10.5:502?unit=1`,
     `modbus-rtu:///dev/ttyUSB0?baud=115200&parity=E`); empty = no controller (strain is
     measured, force and crosshead are missing). A real controller is polled at `poll_rate_hz`
     on its own thread. With `accepts_commands` the appliance starts the crosshead at the test
-    speed and stops it at the end; without, it only reads. `[frame.registers]` is the
-    controller's register map (`hal.frame.register_map`): `preset` and one table per
+    speed and stops it at the end; without, it only reads. `[machine.registers]` is the
+    controller's register map (`hal.machine.register_map`): `preset` and one table per
     quantity overriding the preset's entry key by key; left out, the generic controller's
     map.
     """
 
-    url: str = "sim://frame"
+    url: str = "sim://machine"
     accepts_commands: bool = True
     poll_rate_hz: float = field(default=100.0, metadata=_range(1.0, 1000.0))
     registers: dict = field(default_factory=dict, metadata={"table": True})
@@ -128,22 +131,6 @@ class OpticsConfig:
 
 
 @dataclass(frozen=True)
-class TrackingConfig:
-    """[tracking]: the correlation pipeline."""
-
-    subset_px: int = field(default=41, metadata=_range(5, 301, odd=True))
-    min_subset_px: int = field(default=11, metadata=_range(5, 301, odd=True))
-    search: str = field(default="none", metadata={"choices": ("none", "zncc", "lpq")})
-    search_radius_px: int = field(default=10, metadata=_range(0, 1000))
-    reacquire_search: str = field(default="zncc", metadata={"choices": ("zncc", "lpq")})
-    reacquire_radius_px: int = field(default=40, metadata=_range(0, 1000))
-    prefilter_sigma_px: float = field(default=0.8, metadata=_range(0.0, 5.0))
-    min_zncc: float = field(default=0.8, metadata=_range(-1.0, 1.0))
-    update_zncc: float = field(default=0.95, metadata=_range(-1.0, 1.0))
-    update_deformation: float = field(default=0.08, metadata=_range(0.001, 1.0))
-
-
-@dataclass(frozen=True)
 class GaugeConfig:
     """[gauge]: where the marks are and how long the gauge is.
 
@@ -168,7 +155,7 @@ class GaugeConfig:
 class RunConfig:
     """[run]: test speed and when the test ends.
 
-    `speed_mm_min` left out takes the simulated material's standard speed (a real frame needs
+    `speed_mm_min` left out takes the simulated material's standard speed (a real machine needs
     it, for the exposure plan and the start command); `until_strain` = 0 means no strain
     limit.
     """
@@ -187,7 +174,7 @@ class SimConfig:
     `speed_change_after_s` > 0 makes the simulated controller change the crosshead speed to
     `speed_change_mm_min` that long after the start, as a two-speed test program does (the
     appliance re-plans exposure and triggers from the speed it reads); 0 = one speed.
-    `controller = "modbus-tcp"` serves the simulated frame on a Modbus TCP server on
+    `controller = "modbus-tcp"` serves the simulated machine on a Modbus TCP server on
     127.0.0.1 (a free port, the generic register map) and reads it through the appliance's
     Modbus client and poller, as a real controller is read (`appliance.sim.controller_server`);
     `direct` reads it in-process.
@@ -287,10 +274,10 @@ class Config:
     """The whole configuration."""
 
     camera: CameraConfig = field(default_factory=CameraConfig)
-    frame: FrameConfig = field(default_factory=FrameConfig)
+    machine: MachineConfig = field(default_factory=MachineConfig)
     trigger: TriggerConfig = field(default_factory=TriggerConfig)
     optics: OpticsConfig = field(default_factory=OpticsConfig)
-    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    tracking: TrackerSettings = field(default_factory=TrackerSettings)
     gauge: GaugeConfig = field(default_factory=GaugeConfig)
     run: RunConfig = field(default_factory=RunConfig)
     sim: SimConfig = field(default_factory=SimConfig)
@@ -351,7 +338,7 @@ def _check_value(value: Any, kind: Any, meta: dict, where: str) -> Any:
 
 def _build(cls: type, table: dict, source: str, section: str | None) -> Any:
     hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls)}
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.metadata.get("configurable", True)}
     values = {}
     for key, value in table.items():
         where = f"{source}: [{section}] {key}" if section else f"{source}: [{key}]"
@@ -368,7 +355,12 @@ def _build(cls: type, table: dict, source: str, section: str | None) -> Any:
             if isinstance(kind, types.UnionType):
                 kind = next(k for k in typing.get_args(kind) if k is not type(None))
             values[key] = _check_value(value, kind, dict(fields[key].metadata), where)
-    return cls(**values)
+    if section is not None:
+        _check_relations(section, fields, values, source)
+    try:
+        return cls(**values)
+    except ValueError as exc:
+        raise InputError(f"{source}: [{section}]: {exc}") from None
 
 
 def parse_config(text: str, source: str = "<config>") -> Config:
@@ -389,10 +381,14 @@ _RELATIONS = (
 """(table, key, other key): the value of key may not exceed that of the other key."""
 
 
-def _check_relations(config: Config, source: str) -> None:
-    for section, key, upper in _RELATIONS:
-        table = getattr(config, section)
-        value, limit = getattr(table, key), getattr(table, upper)
+def _check_relations(
+    section: str, fields: dict[str, dataclasses.Field], values: dict[str, Any], source: str
+) -> None:
+    for table, key, upper in _RELATIONS:
+        if table != section:
+            continue
+        value = values.get(key, fields[key].default)
+        limit = values.get(upper, fields[upper].default)
         if value > limit:
             raise InputError(
                 f"{source}: [{section}] {key}: must be <= {upper} ({limit:g}), got {value:g}"
@@ -408,7 +404,7 @@ def config_to_table(config: Config) -> dict[str, dict[str, Any]]:
             return {
                 f.name: table(getattr(value, f.name))
                 for f in dataclasses.fields(value)
-                if getattr(value, f.name) is not None
+                if getattr(value, f.name) is not None and f.metadata.get("configurable", True)
             }
         if isinstance(value, tuple):
             return list(value)
@@ -422,9 +418,8 @@ def config_from_table(table: dict[str, Any], source: str = "<config>") -> Config
     if not isinstance(table, dict):
         raise InputError(f"{source}: a configuration must be a table")
     config = _build(Config, table, source, None)
-    _check_relations(config, source)
     _check_region(config, source)
-    if config.frame.registers:
+    if config.machine.registers:
         register_map_of(config, source)
     return config
 
@@ -439,17 +434,17 @@ def _check_region(config: Config, source: str) -> None:
 
 
 def register_map_of(config: Config, source: str = "<config>") -> RegisterMap:
-    """The controller register map of `[frame.registers]`; the generic controller's
-    (`hal.frame.register_map.GENERIC_CONTROLLER`) when the table is left out.
+    """The controller register map of `[machine.registers]`; the generic controller's
+    (`hal.machine.register_map.GENERIC_CONTROLLER`) when the table is left out.
 
     Raises InputError naming the file, the register table and the key.
     """
-    from hal.frame.register_map import GENERIC_CONTROLLER, RegisterMap
+    from hal.machine.register_map import GENERIC_CONTROLLER, RegisterMap
 
-    if not config.frame.registers:
+    if not config.machine.registers:
         return GENERIC_CONTROLLER
     try:
-        return RegisterMap.from_table(config.frame.registers, f"{source}: [frame.registers]")
+        return RegisterMap.from_table(config.machine.registers, f"{source}: [machine.registers]")
     except HardwareConfigError as exc:
         raise InputError(str(exc)) from None
 

@@ -46,9 +46,16 @@ from appliance.recording.format import (
     number,
     window_of,
 )
-from appliance.recording.reader import RecordedSample, RecordingReader, config_table
+from appliance.recording.reader import (
+    RecordedSample,
+    RecordingReader,
+    config_table,
+    recorded_devices,
+    run_facts,
+)
 from appliance.run.loop import LoopResult
 from appliance.run.outputs import RunFacts, RunOutput
+from appliance.run.state import ExitStatus
 from appliance.run.summary import RunSummary, SampleRecord
 from appliance.runner import RunOutcome, build_measurement
 from hal.camera.base import Frame
@@ -90,7 +97,6 @@ def _setup(reader: RecordingReader, override: Path | None) -> _Setup:
             exposure_us=float(start["reference_exposure_us"]),
         )
         epoch_offset_ns = int(start["epoch_offset_ns"])
-        recorded_facts = json.loads(start.get("facts", "{}"))
     except (KeyError, ValueError, TypeError, FormatError) as exc:
         raise InputError(
             f"{reader.path}: the recorded run facts are not readable ({exc})"
@@ -110,8 +116,8 @@ def _setup(reader: RecordingReader, override: Path | None) -> _Setup:
         calibration=calibration,
         gauge_length_mm=gauges.gauge_length_mm,
         epoch_offset_ns=epoch_offset_ns,
-        devices=dict(reader.meta("devices") or {}),
-        facts=recorded_facts,
+        devices=recorded_devices(reader),
+        facts=run_facts(reader),
     )
     measurer = FrameMeasurer(tracker, gauges, reference.timestamp_ns)
     return _Setup(facts, measurer, reference_image.shape, reference_image.dtype)
@@ -232,7 +238,7 @@ def _replay(
     stop = reader.meta("run_stop") or {}
     damage = reader.damage
     result = LoopResult(
-        exit_status="damaged" if damage else "completed",
+        exit_status=ExitStatus.DAMAGED if damage else ExitStatus.COMPLETED,
         reason=damage.describe() if damage else "every recorded sample measured",
         frames_processed=len(records),
         frames_dropped=int(stop.get("frames_dropped", 0)),

@@ -2,8 +2,8 @@
 
 `run_test` is what `extensometer run` does:
 
-1. devices: the simulated world (`--sim`: camera and frame on one virtual clock, with ground
-   truth) or the camera and frame named by the configuration's URLs;
+1. devices: the simulated world (`--sim`: camera and machine on one virtual clock, with ground
+   truth) or the camera and machine named by the configuration's URLs;
 2. exposure: the configured exposure and frame rate, or the planner's (`appliance.plan.exposure`):
    the longest exposure whose motion blur at the test speed stays within the blur budget and
    the frame rate that keeps the marks' frame-to-frame motion inside the tracker's search;
@@ -31,11 +31,11 @@ import numpy as np
 
 from appliance import __version__
 from appliance.config import Config, register_map_of
-from appliance.devices.polled_machine import PolledFrame
+from appliance.devices.polled_machine import PolledMachine
 from appliance.errors import InputError
 from appliance.measure.frame_measurer import StopCriteria, StrainSample
 from appliance.measure.gauges import Calibration, StrainGauges, StrainGaugesLayout, place_marks
-from appliance.measure.tracking import MarkTracker, TrackerSettings
+from appliance.measure.tracking import MarkTracker
 from appliance.plan.exposure import ExposurePlan, motion_blur_length, plan_exposure
 from appliance.plan.optics import Optics
 from appliance.plan.pacing import ExposurePacer, Replan
@@ -43,7 +43,7 @@ from appliance.plan.trigger_plan import TriggerPlan, TriggerReplanner, plan_trig
 from appliance.recording.writer import McapRecorder
 from appliance.run.loop import DeviceEvent, MeasurementLoop
 from appliance.run.outputs import RunFacts, RunOutput
-from appliance.run.state import RunStateMachine, Transition
+from appliance.run.state import ExitStatus, RunStateMachine, Transition
 from appliance.run.strain_file import StrainCsvWriter
 from appliance.run.summary import RunSummary, SampleRecord
 from hal.camera.base import (
@@ -56,8 +56,8 @@ from hal.camera.base import (
     TriggerMode,
 )
 from hal.clock import Pace
-from hal.frame.base import TensileFrame
-from hal.registry import camera_from_url, frame_from_url
+from hal.machine.base import TestingMachine
+from hal.registry import camera_from_url, machine_from_url
 
 TRUTH_COLUMNS = ("true_engineering_strain", "true_elongation_mm", "strain_error")
 
@@ -164,23 +164,6 @@ class _Progress:
         self.stream.flush()
 
 
-def tracker_settings(config: Config) -> TrackerSettings:
-    """The tracker's settings of a configuration's [tracking] table."""
-    t = config.tracking
-    return TrackerSettings(
-        subset_px=t.subset_px,
-        min_subset_px=t.min_subset_px,
-        search=t.search,
-        search_radius_px=t.search_radius_px,
-        reacquire_search=t.reacquire_search,
-        reacquire_radius_px=t.reacquire_radius_px,
-        prefilter_sigma_px=t.prefilter_sigma_px,
-        min_zncc=t.min_zncc,
-        update_zncc=t.update_zncc,
-        update_deformation=t.update_deformation,
-    )
-
-
 def marks_of(layout: StrainGaugesLayout) -> tuple[tuple[int, ...], ...]:
     """The tracker's marks of a gauge layout: the axial marks, then the transverse ones."""
     marks = [layout.axial.first, layout.axial.second]
@@ -198,7 +181,7 @@ def build_measurement(
 ) -> tuple[MarkTracker, StrainGauges]:
     """The tracker and gauges of a test, on its reference image and placed points."""
     image = np.asarray(reference, dtype=np.float64)
-    tracker = MarkTracker(image, points, marks_of(layout), tracker_settings(config))
+    tracker = MarkTracker(image, points, marks_of(layout), config.tracking)
     gauges = StrainGauges(layout.axial, points, calibration, layout.transverse)
     return tracker, gauges
 
@@ -208,7 +191,7 @@ class _Rig:
     """The devices of a test and what is known of them before the reference is taken."""
 
     camera: Camera
-    frame: TensileFrame | None
+    machine: TestingMachine | None
     optics: Optics
     speed_mm_min: float
     gauge_length_mm: float
@@ -222,10 +205,10 @@ class _Rig:
 def _sim_rig(config: Config) -> _Rig:
     from appliance.sim.world import PRESETS, SimWorld
 
-    if not config.frame.url.startswith("sim://"):
+    if not config.machine.url.startswith("sim://"):
         raise InputError(
-            f"[frame] url: {config.frame.url or 'empty'}: the simulated test needs the "
-            "simulated frame (sim://frame)"
+            f"[machine] url: {config.machine.url or 'empty'}: the simulated test needs the "
+            "simulated machine (sim://machine)"
         )
     optics = configured_optics(config, PRESETS[config.sim.material].optics)
     world = SimWorld.from_config(config, optics)
@@ -236,14 +219,14 @@ def _sim_rig(config: Config) -> _Rig:
         else world.specimen_centre_px
     )
     _check_trigger_url(config, simulate=True)
-    frame: TensileFrame = world.frame
+    machine: TestingMachine = world.controller
     if config.sim.controller == "modbus-tcp":
-        from appliance.sim.controller_server import ModbusServedFrame
+        from appliance.sim.controller_server import ModbusServedMachine
 
-        frame = ModbusServedFrame(world.frame, poll_rate_hz=config.frame.poll_rate_hz)
+        machine = ModbusServedMachine(world.controller, poll_rate_hz=config.machine.poll_rate_hz)
     return _Rig(
         camera=world.camera,
-        frame=frame,
+        machine=machine,
         optics=optics,
         speed_mm_min=world.speed_mm_min,
         gauge_length_mm=config.gauge.length_mm or world.gauge_length_mm,
@@ -258,8 +241,8 @@ def _close_devices(rig: _Rig) -> None:
     """Close the camera, the trigger microcontroller's link and the controller of a test."""
     rig.camera.close()
     _release_trigger_mcu(rig)
-    if rig.frame is not None:
-        rig.frame.close()
+    if rig.machine is not None:
+        rig.machine.close()
 
 
 def _release_trigger_mcu(rig: _Rig) -> None:
@@ -317,7 +300,7 @@ def _connect_trigger_mcu(config: Config, world: Any) -> Any:
 def _hardware_rig(config: Config) -> _Rig:
     """The configured camera and controller; every fact the simulator would know must be
     configured (optics, gauge length, test speed)."""
-    for key, url in (("[camera] url", config.camera.url), ("[frame] url", config.frame.url)):
+    for key, url in (("[camera] url", config.camera.url), ("[machine] url", config.machine.url)):
         if url.startswith("sim://"):
             raise InputError(f"{key}: {url} is simulated: run with --sim, or name a real device")
     _check_trigger_url(config, simulate=False)
@@ -327,15 +310,15 @@ def _hardware_rig(config: Config) -> _Rig:
         raise InputError("[gauge] length_mm: required with a real specimen")
     speed = config.run.speed_mm_min
     if speed is None:
-        raise InputError("[run] speed_mm_min: required with a real frame (exposure plan)")
-    frame: TensileFrame | None = None
-    if config.frame.url:
-        controller = frame_from_url(
-            config.frame.url,
-            register_map=register_map_of(config, "[frame.registers]"),
-            accepts_commands=config.frame.accepts_commands,
+        raise InputError("[run] speed_mm_min: required with a real machine (exposure plan)")
+    machine: TestingMachine | None = None
+    if config.machine.url:
+        controller = machine_from_url(
+            config.machine.url,
+            register_map=register_map_of(config, "[machine.registers]"),
+            accepts_commands=config.machine.accepts_commands,
         )
-        frame = PolledFrame(controller, rate_hz=config.frame.poll_rate_hz)
+        machine = PolledMachine(controller, rate_hz=config.machine.poll_rate_hz)
     g = config.gauge
 
     def centre(reference: Frame) -> tuple[float, float]:
@@ -346,12 +329,12 @@ def _hardware_rig(config: Config) -> _Rig:
 
     return _Rig(
         camera=camera,
-        frame=frame,
+        machine=machine,
         optics=optics,
         speed_mm_min=speed,
         gauge_length_mm=config.gauge.length_mm,
         centre_px=centre,
-        commands=frame is not None and config.frame.accepts_commands,
+        commands=machine is not None and config.machine.accepts_commands,
         block_when_full=False,
     )
 
@@ -415,7 +398,7 @@ def _exposure_pacer(
 ) -> ExposurePacer | None:
     """The pacing of exposure and triggers by the controller's speed; None when it is off
     (`[trigger] replan_hysteresis = 0`) or there is no controller to read the speed from."""
-    if not config.trigger.replan_hysteresis or rig.frame is None:
+    if not config.trigger.replan_hysteresis or rig.machine is None:
         return None
     source = config.trigger.source
     timer = None
@@ -568,11 +551,11 @@ def run_test(
             listener(record)
 
     state = RunStateMachine(on_transition=transition)
-    camera, frame = rig.camera, rig.frame
+    camera, machine = rig.camera, rig.machine
     try:
         camera.open()
-        if frame is not None:
-            frame.open()
+        if machine is not None:
+            machine.open()
         in_force = camera.configure(
             CameraSettings(
                 exposure_us=plan.exposure_s * 1e6,
@@ -600,7 +583,7 @@ def run_test(
         "blur_px_at_crosshead_speed": plan.blur_px,
         "blur_budget_met": bool(plan.budget_met),
         "trigger_source": config.trigger.source,
-        "frame_url": frame.url if frame is not None else "",
+        "machine_url": machine.url if machine is not None else "",
     }
     if triggers is not None:
         extra["trigger_period_ticks"] = triggers.period_ticks
@@ -638,7 +621,7 @@ def run_test(
             epoch_offset_ns=time.time_ns() - exposure_end_ns,
             devices={
                 "camera": camera.url,
-                "frame": frame.url if frame is not None else "",
+                "machine": machine.url if machine is not None else "",
                 "software": f"extensometer {__version__}",
             },
             facts={"test_id": test_id, "simulated": simulate, **extra},
@@ -695,7 +678,7 @@ def run_test(
         device_events.append(_device_printer(progress))
     loop = MeasurementLoop(
         camera,
-        frame,
+        machine,
         setup,
         sinks=sinks,
         immediate_sinks=immediate_sinks,
@@ -724,8 +707,8 @@ def run_test(
             output.end(result)
         except Exception as exc:  # noqa: BLE001 - one failing output must not hide the others
             output_errors.append(f"{type(exc).__name__}: {exc}")
-    if output_errors and result.exit_status in ("completed", "break"):
-        result.exit_status = "fault"
+    if output_errors and result.exit_status.ended_normally:
+        result.exit_status = ExitStatus.FAULT
         result.reason = f"outputs: {output_errors[0]}"
     summary = RunSummary.from_run(result, records)
     extra.update(

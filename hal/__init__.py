@@ -1,1 +1,1 @@
-"""Hardware abstraction layer: cameras and tensile frame controllers behind small protocols."""
+"""Hardware abstraction layer: cameras and testing machine controllers behind small protocols."""

@@ -1,6 +1,6 @@
 """Clocks shared by the simulated devices: one virtual time line, real time or as fast as possible.
 
-A simulated camera and a simulated frame read and advance the same `SimClock`, so images,
+A simulated camera and a simulated machine read and advance the same `SimClock`, so images,
 forces and crosshead positions agree. In FAST mode `wait_until` jumps the clock forward at
 once; in REAL_TIME mode it sleeps until the wall clock reaches that moment of the simulation.
 The wall-clock source and the sleep function are injected, so tests run deterministically.

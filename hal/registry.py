@@ -1,10 +1,10 @@
 """Backends chosen by URL-like strings from configuration (after python-can's interfaces).
 
-A device is named by a URL whose scheme picks the backend: `sim://camera`, `sim://frame`
+A device is named by a URL whose scheme picks the backend: `sim://camera`, `sim://machine`
 (simulators), `aravis://ADDRESS` (GigE Vision), `v4l2:///dev/videoN`, `modbus-tcp://HOST:PORT`
-and `modbus-rtu:///dev/ttyX?baud=...` (frame controllers). The table maps each scheme to
+and `modbus-rtu:///dev/ttyX?baud=...` (machine controllers). The table maps each scheme to
 the module and class that implement it; modules are imported only when their scheme is used,
-so an appliance without Aravis installed still runs on a Modbus frame and a V4L2 camera.
+so an appliance without Aravis installed still runs on a Modbus machine and a V4L2 camera.
 
 Backends are constructed as `Class(url, **resources)`: `resources` are objects the caller
 already holds that a backend needs (a simulator's `Scene` and clock, for instance), passed by
@@ -19,7 +19,7 @@ from urllib.parse import urlsplit
 
 from hal.camera.base import Camera
 from hal.errors import HardwareConfigError
-from hal.frame.base import TensileFrame
+from hal.machine.base import TestingMachine
 
 CAMERA_BACKENDS: dict[str, str] = {
     "sim": "hal.camera.sim:SimCamera",
@@ -28,12 +28,12 @@ CAMERA_BACKENDS: dict[str, str] = {
 }
 """Camera URL scheme -> "module:Class"."""
 
-FRAME_BACKENDS: dict[str, str] = {
-    "sim": "hal.frame.sim:SimFrame",
-    "modbus-tcp": "hal.frame.modbus:ModbusFrame",
-    "modbus-rtu": "hal.frame.modbus:ModbusFrame",
+MACHINE_BACKENDS: dict[str, str] = {
+    "sim": "hal.machine.sim:SimMachine",
+    "modbus-tcp": "hal.machine.modbus:ModbusMachine",
+    "modbus-rtu": "hal.machine.modbus:ModbusMachine",
 }
-"""Tensile-frame URL scheme -> "module:Class"."""
+"""Testing machine URL scheme -> "module:Class"."""
 
 
 def _load(table: dict[str, str], url: str, kind: str) -> type:
@@ -58,6 +58,6 @@ def camera_from_url(url: str, **resources: Any) -> Camera:
     return _load(CAMERA_BACKENDS, url, "camera")(url, **resources)
 
 
-def frame_from_url(url: str, **resources: Any) -> TensileFrame:
-    """Construct (not open) the tensile frame named by `url`. Raises HardwareConfigError."""
-    return _load(FRAME_BACKENDS, url, "frame")(url, **resources)
+def machine_from_url(url: str, **resources: Any) -> TestingMachine:
+    """Construct (not open) the testing machine named by `url`. Raises HardwareConfigError."""
+    return _load(MACHINE_BACKENDS, url, "machine")(url, **resources)

@@ -10,7 +10,7 @@ Subcommands:
     replay  measure a recorded test again from its recorded pixels.
     info    summarise a recording and check its integrity.
     camera-check  grab frames from a camera and report size, format, rate and losses.
-    frame-check   read the frame controller's state and report it, with read rate and latency.
+    machine-check   read the machine controller's state and report it, with read rate and latency.
     trigger-check handshake with the trigger microcontroller, time its link, fit its clock.
 
 Bad input ends with one line `extensometer: error: ...` naming the culprit and exit status 2.
@@ -151,15 +151,17 @@ def build_parser() -> argparse.ArgumentParser:
     camera.add_argument("--frames", type=_frame_count, default=600, help="frames per setting")
     camera.add_argument("--json", action="store_true", help="print JSON instead of a table")
     camera.add_argument("--out", metavar="FILE", help="also write the JSON to FILE")
-    frame = benches.add_parser(
-        "frame", help="frame controller state reads over Modbus TCP: rate and latency"
+    machine = benches.add_parser(
+        "machine", help="machine controller state reads over Modbus TCP: rate and latency"
     )
-    frame.add_argument("--frame", metavar="URL", help="a controller instead of the simulated one")
-    frame.add_argument(
+    machine.add_argument(
+        "--machine", metavar="URL", help="a controller instead of the simulated one"
+    )
+    machine.add_argument(
         "--duration", type=_positive_float, default=5.0, help="seconds per measurement (5)"
     )
-    frame.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    frame.add_argument("--out", metavar="FILE", help="also write the JSON to FILE")
+    machine.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    machine.add_argument("--out", metavar="FILE", help="also write the JSON to FILE")
     for name, text in (
         ("trigger-jitter", "trigger pulse timing of the real firmware under simavr"),
         ("clock-sync", "host timestamp error after clock sync, firmware under simavr"),
@@ -184,7 +186,7 @@ def _add_run_parser(commands) -> None:
         ),
     )
     run.add_argument("--config", type=Path, help="TOML configuration file (default: defaults)")
-    run.add_argument("--sim", action="store_true", help="use the simulated frame and camera")
+    run.add_argument("--sim", action="store_true", help="use the simulated machine and camera")
     run.add_argument("--material", choices=("rubber", "metal"), help="simulated material")
     run.add_argument("--speed-mm-min", type=_positive_float, help="crosshead speed, mm/min")
     run.add_argument("--exposure-us", type=_positive_float, help="exposure (default: planned)")
@@ -276,9 +278,9 @@ def _add_run_parser(commands) -> None:
     camera_check.add_argument("--exposure-us", type=_positive_float, help="exposure, us")
     camera_check.add_argument("--json", action="store_true", help="print JSON on stdout")
 
-    frame_check = commands.add_parser(
-        "frame-check",
-        help="read the frame controller's state and report it",
+    machine_check = commands.add_parser(
+        "machine-check",
+        help="read the machine controller's state and report it",
         description=(
             "Open the controller, read its state N times (nothing is written) and print "
             "crosshead position, speed, force and running, with the read rate and latency. "
@@ -286,12 +288,12 @@ def _add_run_parser(commands) -> None:
             "2 for a bad URL or register map."
         ),
     )
-    frame_check.add_argument("--frame", metavar="URL", help="controller URL ([frame] url)")
-    frame_check.add_argument(
-        "--config", type=Path, help="TOML configuration ([frame] table, register map)"
+    machine_check.add_argument("--machine", metavar="URL", help="controller URL ([machine] url)")
+    machine_check.add_argument(
+        "--config", type=Path, help="TOML configuration ([machine] table, register map)"
     )
-    frame_check.add_argument("--reads", type=_read_count, default=50, help="reads (50)")
-    frame_check.add_argument("--json", action="store_true", help="print JSON on stdout")
+    machine_check.add_argument("--reads", type=_read_count, default=50, help="reads (50)")
+    machine_check.add_argument("--json", action="store_true", help="print JSON on stdout")
 
     trigger_check = commands.add_parser(
         "trigger-check",
@@ -417,7 +419,7 @@ def _run(args: argparse.Namespace) -> int:
         print(outcome.to_json())
     else:
         print_summary(outcome)
-    return 0 if outcome.summary.exit_status in ("completed", "break") else 1
+    return 0 if outcome.summary.exit_status.ended_normally else 1
 
 
 def _serve(args: argparse.Namespace) -> int:
@@ -766,9 +768,9 @@ def _device_check(args: argparse.Namespace) -> int:
             lines = device_check.camera_report_lines(report)
             failed = report["lost"] > 0
         else:
-            frame = device_check.frame_for_check(config, args.frame or config.frame.url)
-            report = device_check.check_frame(frame, reads=args.reads)
-            lines = device_check.frame_report_lines(report)
+            machine = device_check.machine_for_check(config, args.machine or config.machine.url)
+            report = device_check.check_machine(machine, reads=args.reads)
+            lines = device_check.machine_report_lines(report)
             failed = False
     except HardwareConfigError as error:
         raise InputError(f"{args.command}: {error}") from None
@@ -797,13 +799,13 @@ def _bench(args: argparse.Namespace) -> int:
         return run_camera_benchmark(
             Path(args.out) if args.out else None, args.json, url=args.camera, frames=args.frames
         )
-    if args.bench == "frame":
-        from appliance.bench.frame_client import run_frame_benchmark
+    if args.bench == "machine":
+        from appliance.bench.machine_client import run_machine_benchmark
 
-        return run_frame_benchmark(
+        return run_machine_benchmark(
             Path(args.out) if args.out else None,
             args.json,
-            url=args.frame,
+            url=args.machine,
             duration_s=args.duration,
         )
     if args.bench == "trigger-jitter":
@@ -842,7 +844,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _serve(args)
         if args.command == "info":
             return _info(args)
-        if args.command in ("camera-check", "frame-check", "trigger-check"):
+        if args.command in ("camera-check", "machine-check", "trigger-check"):
             return _device_check(args)
         return _bench(args)
     except InputError as error:

@@ -1,7 +1,7 @@
-"""Installer's checks of the devices: `extensometer camera-check` and `frame-check`.
+"""Installer's checks of the devices: `extensometer camera-check` and `machine-check`.
 
 The first commands run on a new installation, before any test: does the camera deliver
-frames of the expected size and format at the expected rate without loss, does the frame's
+frames of the expected size and format at the expected rate without loss, does the machine's
 controller answer with a sensible state, how fast, and does the trigger microcontroller run
 the firmware this host speaks (`check_trigger`: handshake, round trips, clock fit, encoder
 position; nothing is triggered)?
@@ -10,7 +10,7 @@ position; nothing is triggered)?
 configuration, or the given overrides), free-runs it at a frame rate, grabs N frames, and
 reports size, format, the frame rate achieved (host arrival times) and by the device's
 clock, frames lost (gaps in the camera's frame counter), the device timestamps and the
-images' grey levels (to judge exposure: the saturated fraction). `check_frame` opens a
+images' grey levels (to judge exposure: the saturated fraction). `check_machine` opens a
 controller, reads its state N times and reports the last state, the read rate and the read
 latency. Neither starts a test or moves the crosshead.
 
@@ -30,8 +30,8 @@ from appliance.config import Config, register_map_of
 from appliance.runner import camera_region, configured_optics
 from hal.camera.base import Camera, CameraSettings, PixelFormat, TriggerInfo, TriggerMode
 from hal.errors import HardwareTimeout
-from hal.frame.base import FrameState, TensileFrame
-from hal.registry import camera_from_url, frame_from_url
+from hal.machine.base import MachineState, TestingMachine
+from hal.registry import camera_from_url, machine_from_url
 
 
 def camera_for_check(config: Config, url: str) -> Camera:
@@ -41,13 +41,13 @@ def camera_for_check(config: Config, url: str) -> Camera:
     return camera_from_url(url)
 
 
-def frame_for_check(config: Config, url: str) -> TensileFrame:
+def machine_for_check(config: Config, url: str) -> TestingMachine:
     """The controller named by `url`, with the configuration's register map."""
     if url.startswith("sim://"):
-        return _sim_world(config).frame
-    return frame_from_url(
+        return _sim_world(config).controller
+    return machine_from_url(
         url,
-        register_map=register_map_of(config, "[frame.registers]"),
+        register_map=register_map_of(config, "[machine.registers]"),
         accepts_commands=False,
     )
 
@@ -175,16 +175,18 @@ def check_camera(
     return report
 
 
-def check_frame(frame: TensileFrame, *, reads: int = 50, timeout_s: float = 1.0) -> dict[str, Any]:
+def check_machine(
+    machine: TestingMachine, *, reads: int = 50, timeout_s: float = 1.0
+) -> dict[str, Any]:
     """Read the controller's state `reads` times, as fast as it answers.
 
     Args:
-        frame: a constructed, not opened, controller (closed again on return).
+        machine: a constructed, not opened, controller (closed again on return).
         reads: number of reads (>= 1).
         timeout_s: timeout of each read.
 
     Returns:
-        A JSON-ready report: `frame` (URL), `reads`, `state` (the last reading: crosshead_mm,
+        A JSON-ready report: `machine` (URL), `reads`, `state` (the last reading: crosshead_mm,
         speed_mm_min, force_n, running, encoder_counts), `rate_hz`, `latency_ms`
         (p50/p99/max) and the backend's `statistics` where it has them.
 
@@ -194,22 +196,22 @@ def check_frame(frame: TensileFrame, *, reads: int = 50, timeout_s: float = 1.0)
     if reads < 1:
         raise ValueError(f"reads must be >= 1, got {reads}")
     latencies: list[float] = []
-    state: FrameState | None = None
-    frame.open(timeout_s)
+    state: MachineState | None = None
+    machine.open(timeout_s)
     try:
         started = time.perf_counter()
         for _ in range(reads):
             before = time.perf_counter()
-            state = frame.read_state(timeout_s)
+            state = machine.read_state(timeout_s)
             latencies.append((time.perf_counter() - before) * 1e3)
         elapsed = time.perf_counter() - started
-        statistics = getattr(frame, "statistics", None)
+        statistics = getattr(machine, "statistics", None)
         stats = statistics() if callable(statistics) else None
     finally:
-        frame.close()
+        machine.close()
     assert state is not None
     report: dict[str, Any] = {
-        "frame": frame.url,
+        "machine": machine.url,
         "reads": reads,
         "state": {k: v for k, v in dataclasses.asdict(state).items() if k != "timestamp_ns"},
         "rate_hz": reads / elapsed if elapsed > 0 else None,
@@ -242,11 +244,11 @@ def camera_report_lines(report: dict[str, Any]) -> list[str]:
     return lines
 
 
-def frame_report_lines(report: dict[str, Any]) -> list[str]:
+def machine_report_lines(report: dict[str, Any]) -> list[str]:
     """The controller report as aligned lines for a terminal."""
     s = report["state"]
     lines = [
-        f"frame              {report['frame']}",
+        f"machine            {report['machine']}",
         f"crosshead          {s['crosshead_mm']:.4f} mm",
         f"speed              {s['speed_mm_min']:.4f} mm/min",
         f"force              {s['force_n']:.3f} N",

@@ -1,8 +1,8 @@
-"""A frame controller read on its own thread, so the camera's thread never waits for it.
+"""A machine controller read on its own thread, so the camera's thread never waits for it.
 
 A real controller answers over a network or a serial line: a read takes milliseconds and, when
 the controller is away, up to its timeout. The measurement loop reads the controller's state
-with every frame; `PolledFrame` makes that read free: a thread polls the controller at a fixed
+with every frame; `PolledMachine` makes that read free: a thread polls the controller at a fixed
 rate (>= 100 Hz for the machine's own control to be followed) and `read_state` hands out the
 latest reading, or raises `HardwareConnectError` when there is none younger than `max_age_s`
 (with the poller's last error), which the loop records as a sample without controller data.
@@ -10,7 +10,7 @@ latest reading, or raises `HardwareConnectError` when there is none younger than
 Commands (start, stop, return to start) go straight to the controller, serialised with the
 poller's reads by one lock (a Modbus client is not to be shared between threads).
 
-The simulated frame is not polled: its clock is the simulation's and moves with the frames.
+The simulated machine is not polled: its clock is the simulation's and moves with the frames.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hal.errors import HardwareConnectError, HardwareError
-from hal.frame.base import FrameState, TensileFrame
+from hal.machine.base import MachineState, TestingMachine
 
 
 @dataclass(frozen=True)
@@ -37,11 +37,11 @@ class PollStatistics:
     max_ms: float
 
 
-class PolledFrame:
-    """A `TensileFrame` whose state is polled in the background.
+class PolledMachine:
+    """A `TestingMachine` whose state is polled in the background.
 
     Args:
-        frame: the controller (opened by `open`, closed by `close`).
+        machine: the controller (opened by `open`, closed by `close`).
         rate_hz: polling rate.
         max_age_s: the oldest reading `read_state` hands out; None = three poll periods or
             0.1 s, whichever is longer.
@@ -50,7 +50,7 @@ class PolledFrame:
 
     def __init__(
         self,
-        frame: TensileFrame,
+        machine: TestingMachine,
         *,
         rate_hz: float = 100.0,
         max_age_s: float | None = None,
@@ -58,13 +58,13 @@ class PolledFrame:
     ) -> None:
         if not rate_hz > 0:
             raise ValueError(f"rate_hz must be > 0, got {rate_hz}")
-        self.frame = frame
-        self.url = frame.url
+        self.machine = machine
+        self.url = machine.url
         self.period_s = 1.0 / rate_hz
         self.max_age_s = max_age_s if max_age_s is not None else max(3 * self.period_s, 0.1)
         self.read_timeout_s = read_timeout_s
         self._lock = threading.Lock()
-        self._latest: tuple[float, FrameState] | None = None
+        self._latest: tuple[float, MachineState] | None = None
         self._error: str = "no reading yet"
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -74,10 +74,10 @@ class PolledFrame:
 
     def open(self, timeout_s: float = 5.0) -> None:
         """Open the controller, take a first reading (so a test starts with one) and poll."""
-        self.frame.open(timeout_s)
+        self.machine.open(timeout_s)
         self._poll_once()
         self._stop.clear()
-        self._thread = threading.Thread(target=self._poll, name="frame-poller", daemon=True)
+        self._thread = threading.Thread(target=self._poll, name="machine-poller", daemon=True)
         self._thread.start()
 
     def close(self) -> None:
@@ -87,9 +87,9 @@ class PolledFrame:
             self._thread.join(timeout=self.read_timeout_s + 1.0)
             self._thread = None
         with self._lock:
-            self.frame.close()
+            self.machine.close()
 
-    def read_state(self, timeout_s: float = 1.0) -> FrameState:
+    def read_state(self, timeout_s: float = 1.0) -> MachineState:
         """The latest reading. Raises HardwareConnectError when it is older than `max_age_s`."""
         latest = self._latest
         if latest is not None and time.monotonic() - latest[0] <= self.max_age_s:
@@ -101,15 +101,15 @@ class PolledFrame:
 
     def start(self, speed_mm_min: float, timeout_s: float = 1.0) -> None:
         with self._lock:
-            self.frame.start(speed_mm_min, timeout_s)
+            self.machine.start(speed_mm_min, timeout_s)
 
     def stop(self, timeout_s: float = 1.0) -> None:
         with self._lock:
-            self.frame.stop(timeout_s)
+            self.machine.stop(timeout_s)
 
     def return_to_start(self, speed_mm_min: float, timeout_s: float = 1.0) -> None:
         with self._lock:
-            self.frame.return_to_start(speed_mm_min, timeout_s)
+            self.machine.return_to_start(speed_mm_min, timeout_s)
 
     def statistics(self) -> PollStatistics:
         """What the poller has read so far."""
@@ -125,7 +125,7 @@ class PolledFrame:
         started = time.monotonic()
         try:
             with self._lock:
-                state = self.frame.read_state(self.read_timeout_s)
+                state = self.machine.read_state(self.read_timeout_s)
         except HardwareError as exc:
             self._failures += 1
             self._error = str(exc)

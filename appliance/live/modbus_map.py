@@ -175,7 +175,7 @@ STATUS_BIT_MEANINGS: tuple[tuple[StatusBit, str], ...] = (
     ),
     (
         StatusBit.NO_CONTROLLER_DATA,
-        "no controller data (the latest sample has no reading of the frame's controller: "
+        "no controller data (the latest sample has no reading of the machine's controller: "
         "force and crosshead are NaN)",
     ),
 )

@@ -114,6 +114,7 @@ from appliance.measure.gauges import Gauge
 from appliance.measure.tracking import TrackStatus
 from appliance.run.loop import LoopResult
 from appliance.run.outputs import RunFacts
+from appliance.run.state import ExitStatus
 
 logger = logging.getLogger(__name__)
 
@@ -159,10 +160,10 @@ _AXIAL_COLOUR = (0, 190, 255)
 _TRANSVERSE_COLOUR = (230, 80, 230)
 _INVALID_COLOUR = (230, 30, 30)
 _EXIT_LEVELS = {
-    "completed": rr.TextLogLevel.INFO,
-    "break": rr.TextLogLevel.INFO,
-    "aborted": rr.TextLogLevel.WARN,
-    "fault": rr.TextLogLevel.ERROR,
+    ExitStatus.COMPLETED: rr.TextLogLevel.INFO,
+    ExitStatus.BREAK: rr.TextLogLevel.INFO,
+    ExitStatus.ABORTED: rr.TextLogLevel.WARN,
+    ExitStatus.FAULT: rr.TextLogLevel.ERROR,
 }
 
 
@@ -187,7 +188,7 @@ class RerunService:
 
     Args:
         serve: "HOST:PORT" to listen on, HOST an IP address (`[rerun] serve`): 127.0.0.1 for
-            viewers on this machine only (or through an SSH tunnel), 0.0.0.0 (or ::) for
+            viewers on this computer only (or through an SSH tunnel), 0.0.0.0 (or ::) for
             viewers on the lab network.
         application_id: the Rerun application id shared by the service and its tests.
         server_memory_limit: how much history the server keeps for viewers that connect
@@ -347,7 +348,7 @@ class RerunViewer:
         """End a test still open and close the gRPC server this viewer opened (idempotent)."""
         test = self._test
         if test is not None and not test.ended:
-            test.close(LoopResult(exit_status="aborted", reason="viewer closed"))
+            test.close(LoopResult(exit_status=ExitStatus.ABORTED, reason="viewer closed"))
         if self._owns_service and self._service is not None:
             self._service.close()
 
@@ -360,7 +361,7 @@ class RerunViewer:
         """
         self.start()
         if self._test is not None and not self._test.ended:
-            self._test.close(LoopResult(exit_status="aborted", reason="next test began"))
+            self._test.close(LoopResult(exit_status=ExitStatus.ABORTED, reason="next test began"))
         test_id = str(facts.facts.get("test_id") or "") or _default_recording_id(facts)
         urls = [self._service.local_url] if self._service is not None else []
         if self.config.connect and self.config.connect not in urls:

@@ -27,7 +27,7 @@ from appliance.measure.frame_windows import ImageWindow, cut_windows
 from appliance.measure.gauges import StrainGauges, StrainReading
 from appliance.measure.tracking import MarkTracker, TrackStatus
 from hal.camera.base import Frame
-from hal.frame.base import FrameState
+from hal.machine.base import MachineState
 
 
 @dataclass(frozen=True)
@@ -70,7 +70,7 @@ class StrainSample:
     gradients: np.ndarray
     data_valid: bool
     reference_updates: int
-    machine: FrameState | None
+    machine: MachineState | None
     latency_s: float
     windows: tuple[ImageWindow, ...] = ()
     zeroed: bool = False
@@ -98,6 +98,20 @@ class StopCriteria:
     until_break: bool = True
     max_time_s: float | None = None
     max_frames: int | None = None
+
+
+@dataclass(frozen=True)
+class Ending:
+    """Why a test ends by itself.
+
+    Attributes:
+        broke: the specimen broke (a force drop, or a gauge mark lost for several frames);
+            False: a limit of `StopCriteria` was reached.
+        reason: one line.
+    """
+
+    broke: bool
+    reason: str
 
 
 @dataclass(frozen=True)
@@ -155,7 +169,7 @@ class FrameMeasurer:
         self._zero_pending = True
 
     def measure(
-        self, frame: Frame, machine: FrameState | None, delivered_s: float | None = None
+        self, frame: Frame, machine: MachineState | None, delivered_s: float | None = None
     ) -> StrainSample:
         """Measure the next frame; `machine` is the controller's state read with it.
 
@@ -207,11 +221,8 @@ class FrameMeasurer:
         self._last = sample
         return sample
 
-    def ending(self, criteria: StopCriteria) -> tuple[str, str] | None:
-        """(exit status, reason) when the last measured sample ends the test, else None.
-
-        The exit status is "break" or "completed".
-        """
+    def ending(self, criteria: StopCriteria) -> Ending | None:
+        """Why the last measured sample ends the test, or None when it does not."""
         sample = self._last
         if sample is None:
             return None
@@ -219,20 +230,19 @@ class FrameMeasurer:
         strain = sample.reading.engineering_strain
         if criteria.until_break and self._force_broken:
             force = sample.machine.force_n if sample.machine is not None else math.nan
-            return (
-                "break",
-                f"break: force fell to {force:.1f} N from a peak of {self.peak_force_n:.1f} N",
+            return Ending(
+                True, f"break: force fell to {force:.1f} N from a peak of {self.peak_force_n:.1f} N"
             )
         if (
             criteria.until_break
             and self._lost_run >= detection.lost_mark_frames
             and (math.isnan(strain) or strain >= detection.min_strain)
         ):
-            return "break", f"break: a gauge mark lost for {self._lost_run} frames"
+            return Ending(True, f"break: a gauge mark lost for {self._lost_run} frames")
         if criteria.until_strain is not None and strain >= criteria.until_strain:
-            return "completed", f"strain {strain:.6g} reached {criteria.until_strain:g}"
+            return Ending(False, f"strain {strain:.6g} reached {criteria.until_strain:g}")
         if criteria.max_time_s is not None and sample.time_s >= criteria.max_time_s:
-            return "completed", f"time limit {criteria.max_time_s:g} s reached"
+            return Ending(False, f"time limit {criteria.max_time_s:g} s reached")
         if criteria.max_frames is not None and self.samples >= criteria.max_frames:
-            return "completed", f"frame limit {criteria.max_frames} reached"
+            return Ending(False, f"frame limit {criteria.max_frames} reached")
         return None

@@ -44,7 +44,7 @@ import enum
 import functools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -75,7 +75,10 @@ _CONVERGED = int(PointStatus.CONVERGED)
 
 @dataclass(frozen=True)
 class TrackerSettings:
-    """Tuning of `MarkTracker`; every length in px of the image.
+    """Tuning of `MarkTracker`; every length in px of the image. The configuration's
+    `[tracking]` table is this class: a key per field, the same defaults, and each field's
+    `metadata` gives the bounds (`minimum`, `maximum`, inclusive), `choices` or `odd` the
+    configuration checks; fields with `configurable` False are the tracker's own constants.
 
     Attributes:
         subset_px: subset side at the first reference (odd).
@@ -98,19 +101,21 @@ class TrackerSettings:
         axis: loading axis, unit vector (x, y) in image coordinates.
     """
 
-    subset_px: int = 41
-    min_subset_px: int = 11
-    search: str = "none"
-    search_radius_px: int = 10
-    reacquire_search: str = "zncc"
-    reacquire_radius_px: int = 40
-    prefilter_sigma_px: float = DEFAULT_PREFILTER_SIGMA
-    min_zncc: float = 0.8
-    update_zncc: float = 0.95
-    update_deformation: float = 0.08
-    margin_px: int = 4
-    blur_tolerance_px: float = 0.5
-    axis: tuple[float, float] = (0.0, 1.0)
+    subset_px: int = field(default=41, metadata={"minimum": 5, "maximum": 301, "odd": True})
+    min_subset_px: int = field(default=11, metadata={"minimum": 5, "maximum": 301, "odd": True})
+    search: str = field(default="none", metadata={"choices": ("none", "zncc", "lpq")})
+    search_radius_px: int = field(default=10, metadata={"minimum": 0, "maximum": 1000})
+    reacquire_search: str = field(default="zncc", metadata={"choices": ("zncc", "lpq")})
+    reacquire_radius_px: int = field(default=40, metadata={"minimum": 0, "maximum": 1000})
+    prefilter_sigma_px: float = field(
+        default=DEFAULT_PREFILTER_SIGMA, metadata={"minimum": 0.0, "maximum": 5.0}
+    )
+    min_zncc: float = field(default=0.8, metadata={"minimum": -1.0, "maximum": 1.0})
+    update_zncc: float = field(default=0.95, metadata={"minimum": -1.0, "maximum": 1.0})
+    update_deformation: float = field(default=0.08, metadata={"minimum": 0.001, "maximum": 1.0})
+    margin_px: int = field(default=4, metadata={"configurable": False})
+    blur_tolerance_px: float = field(default=0.5, metadata={"configurable": False})
+    axis: tuple[float, float] = field(default=(0.0, 1.0), metadata={"configurable": False})
 
     def __post_init__(self) -> None:
         if self.subset_px < 5 or self.subset_px % 2 == 0:

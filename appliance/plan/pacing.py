@@ -2,7 +2,7 @@
 
 The exposure plan of a test is made for its configured speed. When the speed changes during
 the test (a two-speed test program, an operator's override) the blur of an exposure and the
-motion from one frame to the next change with it. `ExposurePacer` watches the speed the frame
+motion from one frame to the next change with it. `ExposurePacer` watches the speed the machine's
 controller reports with every frame and, when `appliance.plan.trigger_plan.TriggerReplanner` says
 a new plan is due, makes one for the new speed and applies it while acquiring:
 
@@ -32,7 +32,7 @@ from typing import Protocol
 from appliance.plan.trigger_plan import TriggerPlan, TriggerReplanner
 from hal.camera.base import Camera
 from hal.errors import HardwareError
-from hal.frame.base import FrameState
+from hal.machine.base import MachineState
 
 
 class TriggerTimer(Protocol):
@@ -114,7 +114,7 @@ class ExposurePacer:
         """Re-plannings that could not be applied."""
         return sum(1 for replan in self.replans if replan.error)
 
-    def follow(self, time_s: float, state: FrameState | None) -> None:
+    def follow(self, time_s: float, state: MachineState | None) -> None:
         """Look at the controller reading taken with the frame of `time_s` (s since the
         reference; None = no reading this frame) and re-plan if due.
 

@@ -11,7 +11,7 @@ messages of one frame can be gathered from every channel. Per frame, in this ord
 * `/camera/trigger` (JSON): what started the exposure (frame id, time, exposure, mode; with
   the trigger microcontroller also the trigger's sequence number and tick, and the camera's
   own timestamp when the frame was stamped with its trigger's time);
-* `/frame/state` (JSON): the controller's state read with the frame (crosshead, speed, force);
+* `/machine/state` (JSON): the controller's state read with the frame (crosshead, speed, force);
 * `/tracking/points` (JSON): every point's position, displacement, shape parameters, ZNCC and
   status, and where the windows lie;
 * `/sim/truth` (JSON): the simulation's true strain and elongation (simulated tests only);
@@ -28,8 +28,9 @@ bit for bit; NaN and infinities are written as null and read back as NaN.
 Metadata records (`extensometer.*`): `recording` (format and version), `run_start` (test id,
 start time, the device-to-UNIX clock offset, the reference frame's facts), `config` (the
 configuration in force, as JSON), `calibration`, `marks` (the points and how they form marks
-and gauges), `devices` (camera, frame controller, software), and at the end `run_stop` (exit
-status, reason, counts). The reference frame is the attachment `reference.png` (lossless).
+and gauges), `devices` (camera, the machine's controller, software), and at the end
+`run_stop` (exit status, reason, counts). The reference frame is the attachment
+`reference.png` (lossless).
 """
 
 from __future__ import annotations
@@ -48,10 +49,12 @@ from mcap_protobuf.schema import build_file_descriptor_set
 from appliance.measure.frame_measurer import StrainSample
 from appliance.measure.frame_windows import ImageWindow
 from appliance.measure.tracking import TrackStatus
-from hal.frame.base import FrameState
+from hal.machine.base import MachineState
 
 FORMAT_NAME = "extensometer-mcap"
-FORMAT_VERSION = "1"
+FORMAT_VERSION = "2"
+"""Version 2 calls the testing machine the machine (`/machine/state`, `[machine]`,
+`machine_url`); version 1 called it the frame. `appliance.recording.migration` reads both."""
 PROFILE = ""
 REFERENCE_ATTACHMENT = "reference.png"
 META_PREFIX = "extensometer."
@@ -59,7 +62,7 @@ META_PREFIX = "extensometer."
 TOPIC_FULL = "/camera/full"
 TOPIC_WINDOW = "/camera/window/{mark}"
 TOPIC_TRIGGER = "/camera/trigger"
-TOPIC_MACHINE = "/frame/state"
+TOPIC_MACHINE = "/machine/state"
 TOPIC_POINTS = "/tracking/points"
 TOPIC_STRAIN = "/strain"
 TOPIC_TRUTH = "/sim/truth"
@@ -87,9 +90,9 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
             "device_timestamp_ns": {"type": ["integer", "null"]},
         },
     },
-    "extensometer.FrameState": {
+    "extensometer.MachineState": {
         "type": "object",
-        "title": "Tensile frame controller state read with a frame",
+        "title": "The testing machine's state read with a frame",
         "properties": {
             "crosshead_mm": _NUMBER,
             "speed_mm_min": _NUMBER,
@@ -177,7 +180,7 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
 TOPIC_SCHEMAS: dict[str, str] = {
     TOPIC_FULL: "foxglove.RawImage",
     TOPIC_TRIGGER: "extensometer.Trigger",
-    TOPIC_MACHINE: "extensometer.FrameState",
+    TOPIC_MACHINE: "extensometer.MachineState",
     TOPIC_POINTS: "extensometer.TrackedPoints",
     TOPIC_STRAIN: "extensometer.Strain",
     TOPIC_TRUTH: "extensometer.Truth",
@@ -333,7 +336,7 @@ def trigger_record(sample: StrainSample, mode: str) -> dict[str, Any]:
     }
 
 
-def machine_record(state: FrameState) -> dict[str, Any]:
+def machine_record(state: MachineState) -> dict[str, Any]:
     """A controller state as a record."""
     return {
         "crosshead_mm": state.crosshead_mm,
@@ -345,9 +348,9 @@ def machine_record(state: FrameState) -> dict[str, Any]:
     }
 
 
-def machine_of(record: Mapping[str, Any]) -> FrameState:
+def machine_of(record: Mapping[str, Any]) -> MachineState:
     """The controller state of a `machine_record`."""
-    return FrameState(
+    return MachineState(
         crosshead_mm=number(record["crosshead_mm"]),
         speed_mm_min=number(record["speed_mm_min"]),
         force_n=number(record["force_n"]),

@@ -8,12 +8,11 @@ place of the damage, and everything before it is still counted.
 from __future__ import annotations
 
 import datetime
-import json
 from pathlib import Path
 from typing import Any, TextIO
 
 from appliance.recording.format import TOPIC_STRAIN
-from appliance.recording.reader import RecordingReader, config_table
+from appliance.recording.reader import RecordingReader, config_table, run_facts
 
 
 def _utc(unix_ns: int) -> str:
@@ -43,7 +42,7 @@ def recording_info(path: str | Path) -> dict[str, Any]:
     start = reader.meta("run_start") or {}
     stop = reader.meta("run_stop") or {}
     calibration = reader.meta("calibration") or {}
-    facts = json.loads(start.get("facts", "{}")) if start else {}
+    facts = run_facts(reader)
     material = facts.get("material")
     if material is None and reader.meta("config"):
         material = config_table(reader).get("sim", {}).get("material")

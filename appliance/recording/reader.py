@@ -21,10 +21,10 @@ from mcap.records import Attachment, Channel, DataEnd, Footer, Message, Metadata
 from mcap.stream_reader import StreamReader
 
 from appliance.errors import InputError
+from appliance.recording import migration
 from appliance.recording.format import (
     FORMAT_NAME,
     META_PREFIX,
-    TOPIC_MACHINE,
     TOPIC_POINTS,
     TOPIC_STRAIN,
     TOPIC_TRIGGER,
@@ -44,7 +44,7 @@ class RecordedSample:
         log_time_ns: acquisition time, UNIX ns.
         points: the `/tracking/points` record.
         strain: the `/strain` record.
-        machine: the `/frame/state` record, or None.
+        machine: the machine's state record (`/machine/state`), or None.
         trigger: the `/camera/trigger` record, or None.
         truth: the `/sim/truth` record, or None.
         windows: mark -> serialised `foxglove.RawImage` of its window.
@@ -124,21 +124,36 @@ class RecordingReader:
         return record
 
     def check_format(self) -> None:
-        """Raise InputError unless the recording says it is of this format."""
+        """Raise InputError unless the recording says it is of this format, in a version this
+        software reads (this one or an older one)."""
         record = self.meta("recording")
         if record is None or record.get("format") != FORMAT_NAME:
             raise InputError(f"{self.path}: not an extensometer recording")
+        version = record.get("version", "")
+        if not version.isdigit() or not 1 <= int(version) <= migration.CURRENT_VERSION:
+            raise InputError(
+                f"{self.path}: recording format version {version!r} is not one this software "
+                f"reads (1 to {migration.CURRENT_VERSION})"
+            )
+
+    @property
+    def version(self) -> int:
+        """The recording's format version (the current one until its metadata is read)."""
+        version = (self.meta("recording") or {}).get("version", "")
+        return int(version) if version.isdigit() else migration.CURRENT_VERSION
 
     def samples(self) -> Iterator[RecordedSample]:
         """Every whole sample in order, up to the end or the damage (then `damage` is set)."""
         parts: dict[int, dict[str, Any]] = {}
+        machine_topic = ""
         for topic, message in self._records():
             seq = message.sequence
+            machine_topic = machine_topic or migration.machine_topic(self.version)
             if topic.startswith("/camera/window/"):
                 parts.setdefault(seq, {}).setdefault("windows", {})[
                     int(topic.rsplit("/", 1)[1])
                 ] = message.data
-            elif topic in (TOPIC_MACHINE, TOPIC_TRIGGER, TOPIC_TRUTH, TOPIC_POINTS):
+            elif topic in (machine_topic, TOPIC_TRIGGER, TOPIC_TRUTH, TOPIC_POINTS):
                 parts.setdefault(seq, {})[topic] = decode_json(message.data)
             elif topic == TOPIC_STRAIN:
                 got = parts.pop(seq, {})
@@ -149,7 +164,7 @@ class RecordingReader:
                     log_time_ns=message.log_time,
                     points=got[TOPIC_POINTS],
                     strain=decode_json(message.data),
-                    machine=got.get(TOPIC_MACHINE),
+                    machine=got.get(machine_topic),
                     trigger=got.get(TOPIC_TRIGGER),
                     truth=got.get(TOPIC_TRUTH),
                     windows=got.get("windows", {}),
@@ -206,7 +221,8 @@ class RecordingReader:
 
 
 def config_table(reader: RecordingReader) -> dict[str, Any]:
-    """The recorded configuration as tables (raises InputError if missing or malformed)."""
+    """The recorded configuration as tables, in the current format's names (raises
+    InputError if missing or malformed)."""
     record = reader.require("config")
     try:
         table = json.loads(record["json"])
@@ -214,4 +230,22 @@ def config_table(reader: RecordingReader) -> dict[str, Any]:
         raise InputError(f"{reader.path}: the recorded configuration is not readable") from None
     if not isinstance(table, dict):
         raise InputError(f"{reader.path}: the recorded configuration is not a table")
-    return table
+    return migration.config_table(table, reader.version)
+
+
+def run_facts(reader: RecordingReader) -> dict[str, Any]:
+    """The run facts recorded at the start, in the current format's names ({} when the run's
+    start was not recorded). Raises InputError when they are not readable."""
+    start = reader.meta("run_start") or {}
+    try:
+        facts = json.loads(start.get("facts", "{}"))
+    except ValueError:
+        raise InputError(f"{reader.path}: the recorded run facts are not readable") from None
+    if not isinstance(facts, dict):
+        raise InputError(f"{reader.path}: the recorded run facts are not a table")
+    return migration.run_facts(facts, reader.version)
+
+
+def recorded_devices(reader: RecordingReader) -> dict[str, str]:
+    """The device identities recorded at the start, in the current format's names."""
+    return migration.devices(dict(reader.meta("devices") or {}), reader.version)

@@ -275,7 +275,7 @@ class McapRecorder:
         if self._ended:
             return
         self._ended = True
-        level = "INFO" if result.exit_status in ("completed", "break") else "ERROR"
+        level = "INFO" if result.exit_status.ended_normally else "ERROR"
         if self._facts is not None:
             self.log(level, f"run ended: {result.exit_status}: {result.reason}")
         self._metadata(

@@ -2,7 +2,7 @@
 
     camera.fetch --(frames queue)--> track + strain --(samples queue)--> sinks
 
-* The acquisition thread fetches frames and reads the frame controller right after each one.
+* The acquisition thread fetches frames and reads the machine controller right after each one.
   When the frames queue is full it drops the frame and counts it (a real camera cannot wait),
   unless the loop is told to block (a simulation running as fast as possible, whose clock
   only moves when a frame is fetched).
@@ -55,10 +55,10 @@ from appliance.measure.frame_measurer import (
 )
 from appliance.measure.gauges import StrainGauges
 from appliance.measure.tracking import MarkTracker
-from appliance.run.state import RunEvent, RunState, RunStateMachine
+from appliance.run.state import ExitStatus, RunEvent, RunState, RunStateMachine
 from hal.camera.base import Camera, Frame
 from hal.errors import HardwareConnectError, HardwareError, HardwareTimeout
-from hal.frame.base import FrameState, TensileFrame
+from hal.machine.base import MachineState, TestingMachine
 
 OUTAGE_RETRY_S = 0.05
 """Pause between fetch attempts while the camera is away (its backend paces reconnects)."""
@@ -69,7 +69,7 @@ class DeviceEvent:
     """A device went away, is still away, or came back during a run.
 
     Attributes:
-        device: "camera" or "frame" (the controller).
+        device: "camera" or "machine" (its controller).
         url: the device's URL.
         kind: "lost" (first failure), "waiting" (each further failed attempt, camera only)
             or "restored".
@@ -92,7 +92,7 @@ class LoopResult:
     """How a run went.
 
     Attributes:
-        exit_status: "completed", "break", "aborted" or "fault".
+        exit_status: how the run ended.
         reason: why the run ended, one line.
         frames_processed: samples measured.
         frames_dropped: frames lost: dropped on a full queue or missing from the camera's
@@ -106,7 +106,7 @@ class LoopResult:
         samples_without_controller: frames acquired without the controller's state.
     """
 
-    exit_status: str = "completed"
+    exit_status: ExitStatus = ExitStatus.COMPLETED
     reason: str = ""
     frames_processed: int = 0
     frames_dropped: int = 0
@@ -124,11 +124,11 @@ _END = object()
 
 
 class MeasurementLoop:
-    """Runs one test on a camera and a frame controller.
+    """Runs one test on a camera and a machine controller.
 
     Args:
         camera: an opened, configured and prepared camera (not armed).
-        frame: an opened frame controller, or None.
+        machine: an opened testing machine, or None.
         setup: called with the reference frame; returns the tracker and the strain gauges
             (this is where the marks are placed).
         sinks: called in order with every sample, on the publishing thread.
@@ -155,7 +155,7 @@ class MeasurementLoop:
     def __init__(
         self,
         camera: Camera,
-        frame: TensileFrame | None,
+        machine: TestingMachine | None,
         setup: Callable[[Frame], tuple[MarkTracker, StrainGauges]],
         *,
         sinks: Sequence[Sink] = (),
@@ -168,11 +168,11 @@ class MeasurementLoop:
         break_detection: BreakDetection | None = None,
         camera_outage_timeout_s: float = 0.0,
         device_listeners: Sequence[Callable[[DeviceEvent], None]] = (),
-        machine_listeners: Sequence[Callable[[float, FrameState | None], None]] = (),
+        machine_listeners: Sequence[Callable[[float, MachineState | None], None]] = (),
         wall: Callable[[], float] = time.perf_counter,
     ) -> None:
         self.camera = camera
-        self.frame = frame
+        self.machine = machine
         self.setup = setup
         self.sinks = list(sinks)
         self.immediate_sinks = list(immediate_sinks)
@@ -201,7 +201,7 @@ class MeasurementLoop:
 
     def request_stop(self, reason: str = "operator stop") -> None:
         """Ask the run to end normally (thread-safe)."""
-        self._finish("completed", reason)
+        self._finish(ExitStatus.COMPLETED, reason)
 
     def request_zero(self) -> None:
         """Zero the strain at the next measured frame (thread-safe); see
@@ -222,8 +222,8 @@ class MeasurementLoop:
         except Exception as exc:  # noqa: BLE001 - a failed start is a FAULT with its reason
             return self._fail_before_start(exc)
         self.state.handle(RunEvent.START, "measuring")
-        if self.start_speed_mm_min is not None and self.frame is not None:
-            self.frame.start(self.start_speed_mm_min)
+        if self.start_speed_mm_min is not None and self.machine is not None:
+            self.machine.start(self.start_speed_mm_min)
         threads = [
             threading.Thread(target=self._guard, args=("acquisition", self._acquire), daemon=True),
             threading.Thread(
@@ -238,7 +238,7 @@ class MeasurementLoop:
         try:
             self._wait(threads)
         except KeyboardInterrupt:
-            self._finish("aborted", "interrupted by the operator")
+            self._finish(ExitStatus.ABORTED, "interrupted by the operator")
             self._wait(threads)
         self._shut_down()
         return self._result
@@ -271,7 +271,7 @@ class MeasurementLoop:
                 return
 
     def _fail_before_start(self, exc: BaseException) -> LoopResult:
-        self._result.exit_status = "fault"
+        self._result.exit_status = ExitStatus.FAULT
         where = "" if isinstance(exc, HardwareError) else f"{type(exc).__name__}: "
         self._result.reason = f"reference frame: {where}{exc}"
         self.state.handle(RunEvent.FAULT, self._result.reason)
@@ -281,21 +281,21 @@ class MeasurementLoop:
 
     def _shut_down(self) -> None:
         self.camera.disarm()
-        if self.start_speed_mm_min is not None and self.frame is not None:
+        if self.start_speed_mm_min is not None and self.machine is not None:
             try:
-                self.frame.stop()
+                self.machine.stop()
             except HardwareError as exc:
                 if not self._errors:
-                    self._errors.append(("frame", exc))
+                    self._errors.append(("machine", exc))
         result = self._result
         if self._errors:
             where, exc = self._errors[0]
-            result.exit_status = "fault"
+            result.exit_status = ExitStatus.FAULT
             result.reason = f"{where}: {type(exc).__name__}: {exc}"
         current = self.state.state
-        if result.exit_status == "fault":
+        if result.exit_status is ExitStatus.FAULT:
             self.state.handle(RunEvent.FAULT, result.reason)
-        elif result.exit_status == "aborted":
+        elif result.exit_status is ExitStatus.ABORTED:
             self.state.handle(RunEvent.ABORT, result.reason)
         else:
             if current is RunState.RUNNING:
@@ -303,7 +303,7 @@ class MeasurementLoop:
             self.state.handle(RunEvent.FINISH, result.reason)
         result.final_state = self.state.state
 
-    def _finish(self, status: str, reason: str) -> None:
+    def _finish(self, status: ExitStatus, reason: str) -> None:
         with self._lock:
             if self._stop.is_set():
                 return
@@ -311,7 +311,7 @@ class MeasurementLoop:
             self._result.reason = reason
             self._finished.set()
             self._stop.set()
-        if status in ("completed", "break") and self.state.state is RunState.RUNNING:
+        if status.ended_normally and self.state.state is RunState.RUNNING:
             self.state.handle(RunEvent.STOP, reason)
 
     def _guard(self, name: str, body: Callable[..., None], *args: Any) -> None:
@@ -418,22 +418,22 @@ class MeasurementLoop:
             frame, timestamp_ns=frame.timestamp_ns + offset_ns, metadata=metadata
         )
 
-    def _read_machine(self) -> FrameState | None:
+    def _read_machine(self) -> MachineState | None:
         """The controller's state for this frame; None (and an event) when it cannot be read."""
-        if self.frame is None:
+        if self.machine is None:
             return None
         try:
-            state = self.frame.read_state()
+            state = self.machine.read_state()
         except HardwareError as exc:
             self._result.samples_without_controller += 1
             if not self._controller_lost:
                 self._controller_lost = True
                 self._result.controller_outages += 1
-                self._emit(DeviceEvent("frame", self.frame.url, "lost", str(exc)))
+                self._emit(DeviceEvent("machine", self.machine.url, "lost", str(exc)))
             return None
         if self._controller_lost:
             self._controller_lost = False
-            self._emit(DeviceEvent("frame", self.frame.url, "restored", "readings again"))
+            self._emit(DeviceEvent("machine", self.machine.url, "restored", "readings again"))
         return state
 
     def _track(self, tracker: MarkTracker, gauges: StrainGauges, criteria: StopCriteria) -> None:
@@ -465,7 +465,8 @@ class MeasurementLoop:
                 self._publish_sample(sample)
                 ending = measurer.ending(criteria)
                 if ending is not None:
-                    self._finish(*ending)
+                    status = ExitStatus.BREAK if ending.broke else ExitStatus.COMPLETED
+                    self._finish(status, ending.reason)
         finally:
             self._stop.set()
             self._publish_sample(_END)

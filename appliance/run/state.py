@@ -32,6 +32,28 @@ class RunState(enum.Enum):
     FAULT = "fault"
 
 
+class ExitStatus(enum.StrEnum):
+    """How a test ended: the summary's, the recording's and the viewer's `exit_status`.
+
+    COMPLETED: its stop criterion (strain, time or frame limit) or an operator's stop.
+    BREAK: the specimen broke (a force drop, or a gauge mark lost for several frames).
+    ABORTED: interrupted by the operator; what was measured so far is kept.
+    FAULT: a device or the measurement failed; what was measured so far is kept.
+    DAMAGED: a replay stopped at damage in its recording.
+    """
+
+    COMPLETED = "completed"
+    BREAK = "break"
+    ABORTED = "aborted"
+    FAULT = "fault"
+    DAMAGED = "damaged"
+
+    @property
+    def ended_normally(self) -> bool:
+        """Whether the test ran to its end (COMPLETED or BREAK): exit status 0 of `run`."""
+        return self in (ExitStatus.COMPLETED, ExitStatus.BREAK)
+
+
 class RunEvent(enum.Enum):
     """What moves the run from one state to another."""
 

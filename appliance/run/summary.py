@@ -26,6 +26,7 @@ import numpy as np
 from appliance.measure.frame_measurer import StrainSample
 from appliance.run.iso9513 import best_class
 from appliance.run.loop import LoopResult
+from appliance.run.state import ExitStatus
 
 REL_ERROR_MIN_STRAIN = 0.01
 SMALL_ELONGATION_UM = 300.0
@@ -76,7 +77,7 @@ class SampleRecord:
 class RunSummary:
     """Figures of one run (JSON-ready: floats, ints, strings and None)."""
 
-    exit_status: str
+    exit_status: ExitStatus
     reason: str
     frames_processed: int
     frames_dropped: int

@@ -1,8 +1,8 @@
 """A simulated machine behind a real Modbus server: the controller end of the wire.
 
-A simulated test normally reads the simulated frame in-process. With `[sim] controller =
+A simulated test normally reads the simulated machine in-process. With `[sim] controller =
 "modbus-tcp"` the simulated machine is served instead by a pymodbus server on 127.0.0.1 and
-read back through the appliance's own Modbus client (`hal.frame.modbus.ModbusFrame`) and
+read back through the appliance's own Modbus client (`hal.machine.modbus.ModbusMachine`) and
 poller, so a simulated test exercises the controller link as a real test does: register map,
 request batching, float decoding, commands written as coils or registers, polling. The
 tests' controller peers are built on the same classes.
@@ -16,14 +16,14 @@ tests' controller peers are built on the same classes.
   every write to the source. `stop` ends serving (the port is free, connections closed) and
   `serve_tcp` may serve again on the same port: a controller that goes away and comes back.
 * `MachineRegisters`: the source for a live machine (`ServedMachine`) behind a register map.
-* `FrameMachine`: a `ServedMachine` over a `TensileFrame` (the simulated frame).
-* `ModbusServedFrame`: the `TensileFrame` a simulated test reads with `[sim] controller =
-  "modbus-tcp"`: opening it serves the simulated frame on a free 127.0.0.1 port (generic
+* `DirectMachine`: a `ServedMachine` over a `TestingMachine` (the simulated one).
+* `ModbusServedMachine`: the `TestingMachine` a simulated test reads with `[sim] controller =
+  "modbus-tcp"`: opening it serves the simulated machine on a free 127.0.0.1 port (generic
   register map) and connects the appliance's Modbus client and poller to it; closing it
   closes both.
 
 What it does not model: controller scan cycles, filtering, interlocks, a shared RS-485 line,
-inter-frame timing on the wire.
+inter-message timing on the wire.
 """
 
 from __future__ import annotations
@@ -39,8 +39,8 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from hal.errors import HardwareConnectError
-from hal.frame.base import FrameState, TensileFrame
-from hal.frame.register_map import BIT_TABLES, COMMANDS, GENERIC_CONTROLLER, RegisterMap
+from hal.machine.base import MachineState, TestingMachine
+from hal.machine.register_map import BIT_TABLES, COMMANDS, GENERIC_CONTROLLER, RegisterMap
 
 REGISTERS_PER_TABLE = 128
 BITS_PER_TABLE = 64
@@ -203,14 +203,14 @@ class ServedMachine(Protocol):
         """Drive the crosshead back to its start."""
 
 
-class FrameMachine:
-    """A `ServedMachine` over a tensile frame (the simulated one, commands accepted)."""
+class DirectMachine:
+    """A `ServedMachine` over a testing machine (the simulated one, commands accepted)."""
 
-    def __init__(self, frame: TensileFrame) -> None:
-        self.frame = frame
+    def __init__(self, machine: TestingMachine) -> None:
+        self.machine = machine
 
     def state(self) -> Mapping[str, float | bool]:
-        state = self.frame.read_state()
+        state = self.machine.read_state()
         return {
             "crosshead_mm": state.crosshead_mm,
             "speed_mm_min": state.speed_mm_min,
@@ -220,13 +220,13 @@ class FrameMachine:
         }
 
     def start(self, speed_mm_min: float) -> None:
-        self.frame.start(speed_mm_min)
+        self.machine.start(speed_mm_min)
 
     def stop(self) -> None:
-        self.frame.stop()
+        self.machine.stop()
 
     def return_to_start(self, speed_mm_min: float) -> None:
-        self.frame.return_to_start(speed_mm_min)
+        self.machine.return_to_start(speed_mm_min)
 
 
 class MachineRegisters:
@@ -305,37 +305,37 @@ class MachineRegisters:
             self.machine.return_to_start(self.setpoint_mm_min)
 
 
-class ModbusServedFrame:
-    """A tensile frame read over Modbus TCP on loopback from a server answering for it.
+class ModbusServedMachine:
+    """A testing machine read over Modbus TCP on loopback from a server answering for it.
 
     Args:
-        frame: the frame served (the simulated one).
-        poll_rate_hz: the poller's rate (`appliance.devices.polled_machine.PolledFrame`).
+        machine: the machine served (the simulated one).
+        poll_rate_hz: the poller's rate (`appliance.devices.polled_machine.PolledMachine`).
         register_map: the layout served and read (the generic preset by default).
     """
 
     def __init__(
         self,
-        frame: TensileFrame,
+        machine: TestingMachine,
         *,
         poll_rate_hz: float = 100.0,
         register_map: RegisterMap = GENERIC_CONTROLLER,
     ) -> None:
-        self.served = frame
+        self.served = machine
         self.poll_rate_hz = poll_rate_hz
         self.register_map = register_map
         self.url = "modbus-tcp://127.0.0.1 (not serving)"
-        self.registers = MachineRegisters(register_map, FrameMachine(frame))
+        self.registers = MachineRegisters(register_map, DirectMachine(machine))
         self._server: ControllerServer | None = None
-        self._client: TensileFrame | None = None
+        self._client: TestingMachine | None = None
 
     def open(self, timeout_s: float = 5.0) -> None:
-        """Serve the frame on a free loopback port and connect the client to it.
+        """Serve the machine on a free loopback port and connect the client to it.
 
         Raises HardwareConnectError when no port can be served or the client cannot connect.
         """
-        from appliance.devices.polled_machine import PolledFrame
-        from hal.registry import frame_from_url
+        from appliance.devices.polled_machine import PolledMachine
+        from hal.registry import machine_from_url
 
         if self._client is not None:
             return
@@ -344,8 +344,8 @@ class ModbusServedFrame:
         try:
             port = _serve_on_a_free_port(server)
             self.url = f"modbus-tcp://127.0.0.1:{port}"
-            client = PolledFrame(
-                frame_from_url(self.url, register_map=self.register_map, accepts_commands=True),
+            client = PolledMachine(
+                machine_from_url(self.url, register_map=self.register_map, accepts_commands=True),
                 rate_hz=self.poll_rate_hz,
             )
             client.open(timeout_s)
@@ -364,7 +364,7 @@ class ModbusServedFrame:
             server.close()
         self.served.close()
 
-    def read_state(self, timeout_s: float = 1.0) -> FrameState:
+    def read_state(self, timeout_s: float = 1.0) -> MachineState:
         return self._require().read_state(timeout_s)
 
     def start(self, speed_mm_min: float, timeout_s: float = 1.0) -> None:
@@ -381,7 +381,7 @@ class ModbusServedFrame:
         closed."""
         return self._client.statistics() if self._client is not None else None
 
-    def _require(self) -> TensileFrame:
+    def _require(self) -> TestingMachine:
         if self._client is None:
             raise HardwareConnectError(f"{self.url}: not open")
         return self._client
@@ -401,5 +401,5 @@ def _serve_on_a_free_port(server: ControllerServer, attempts: int = 5) -> int:
         except OSError as exc:
             failure = exc
     raise HardwareConnectError(
-        f"modbus-tcp://127.0.0.1: cannot serve the simulated frame: {failure}"
+        f"modbus-tcp://127.0.0.1: cannot serve the simulated machine: {failure}"
     )

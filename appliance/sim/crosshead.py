@@ -1,4 +1,4 @@
-"""Crosshead kinematics of a simulated tensile frame: speed commands with acceleration limits.
+"""Crosshead kinematics of a simulated testing machine: speed commands with acceleration limits.
 
 The crosshead position is measured from its start, positive when the grips open (tension).
 Commands arrive in time order, each with its time stamp: start at a speed (optionally with a

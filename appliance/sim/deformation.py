@@ -5,7 +5,7 @@ Frames of reference (object plane, millimetres):
 * material coordinates (X, Y): a point's position in the undeformed specimen, origin at the
   specimen's centre, Y along the loading axis, X across it;
 * spatial coordinates (x, y): where that point is now, in the same axes, fixed to the test
-  frame (the fixed grip does not move).
+  machine (the fixed grip does not move).
 
 In the image, x runs along the columns and y along the rows (downwards). The moving crosshead
 grip is on the -Y side (the top of the image) and moves towards -y; the fixed grip is on the

@@ -1,7 +1,7 @@
 """The simulated tensile machine: a crosshead pulling a specimen bar, read at any instant.
 
-`SimMachine` implements `hal.frame.sim.MachineModel`: the frame simulator asks it for the
-state at a simulation time and passes commands on with their times. The camera simulator's
+`MachineWithSpecimen` implements `hal.machine.sim.MachineModel`: the machine simulator asks it
+for the state at a simulation time and passes commands on with their times. The camera simulator's
 scene asks it for the specimen's shape at the instants it renders (`deformation_at`).
 
 Everything is a function of the time and of the command history: the crosshead position is
@@ -12,9 +12,9 @@ displacement; from then on the force is 0.
 
 Threads: commands (under a lock) replace an immutable snapshot of the plan and its break
 time; readers take the snapshot without locking, so `state` and `deformation_at` may be called
-from camera and frame threads while commands arrive from another.
+from camera and machine threads while commands arrive from another.
 
-What it does not model: frame and load-cell compliance, load-cell noise and filtering, an
+What it does not model: machine and load-cell compliance, load-cell noise and filtering, an
 automatic stop at break (the controller's job).
 """
 
@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from appliance.sim.bar import BarModel, BarState
 from appliance.sim.crosshead import Crosshead, MotionPlan
 from appliance.sim.deformation import AxialDeformation
-from hal.frame.base import FrameState
+from hal.machine.base import MachineState
 
 
 @dataclass(frozen=True)
@@ -36,7 +36,7 @@ class _Snapshot:
     broken_at_s: float | None
 
 
-class SimMachine:
+class MachineWithSpecimen:
     """A tensile machine with a specimen in its grips (implements `MachineModel`).
 
     Args:
@@ -100,7 +100,7 @@ class SimMachine:
         """Shape of the specimen at simulation time t_s, s (for the camera's renderer)."""
         return self.bar_state_at(t_s).deformation
 
-    def state(self, t_s: float) -> FrameState:
+    def state(self, t_s: float) -> MachineState:
         """Controller state at simulation time t_s, s: crosshead, speed, force, encoder."""
         snapshot = self._snapshot
         position = float(snapshot.plan.position_mm_at(t_s))
@@ -109,7 +109,7 @@ class SimMachine:
             if self.encoder_counts_per_mm is None
             else round(position * self.encoder_counts_per_mm)
         )
-        return FrameState(
+        return MachineState(
             crosshead_mm=position,
             speed_mm_min=60.0 * float(snapshot.plan.speed_mm_s_at(t_s)),
             force_n=self._bar_state(snapshot, t_s).force_n,

@@ -8,7 +8,7 @@ the next rising edge:
 * period source: edges at arm time + k * period (the period in ticks at `tick_hz`, so the
   rounding to whole ticks is the real one);
 * encoder source: an edge each time the crosshead encoder (the machine's position times its
-  counts per mm, as the simulated frame reports it) has advanced by the divisor since the
+  counts per mm, as the simulated machine reports it) has advanced by the divisor since the
   last edge, found exactly from the crosshead's motion plan.
 
 Every edge is kept as a `SimTriggerEvent` (sequence number from 1, time, encoder position),
@@ -25,7 +25,7 @@ import threading
 from dataclasses import dataclass
 
 from appliance.plan.trigger_plan import TriggerPlan
-from appliance.sim.machine import SimMachine
+from appliance.sim.machine import MachineWithSpecimen
 
 
 @dataclass(frozen=True)
@@ -46,7 +46,7 @@ class SimTriggerController:
         tick_hz: the simulated microcontroller's tick rate, Hz.
     """
 
-    def __init__(self, machine: SimMachine, *, tick_hz: float = 2_000_000.0) -> None:
+    def __init__(self, machine: MachineWithSpecimen, *, tick_hz: float = 2_000_000.0) -> None:
         self.machine = machine
         self.tick_hz = tick_hz
         self.events: list[SimTriggerEvent] = []

@@ -1,4 +1,4 @@
-"""The simulated tensile test: one world drives the simulated camera and frame on one clock.
+"""The simulated tensile test: one world drives the simulated camera and machine on one clock.
 
 `SimWorld.from_config` builds, for a material preset:
 
@@ -6,8 +6,9 @@
   bar model (`appliance.sim.bar`) loaded by a crosshead with an acceleration limit
   (`appliance.sim.crosshead`), together the machine (`appliance.sim.machine`);
 * the camera's view of it (`appliance.sim.scene`), through the preset's lens and sensor
-  (`appliance.plan.optics`), framed so that both gauge marks stay in view to the end of the test;
-* the devices, through the backend registry like any other: `sim://camera` and `sim://frame`
+  (`appliance.plan.optics`), with a field of view that keeps both gauge marks in sight to the
+  end of the test;
+* the devices, through the backend registry like any other: `sim://camera` and `sim://machine`
   receive the scene, the machine and the shared `SimClock` (fast or real time).
 
 Presets (`PRESETS`):
@@ -35,14 +36,14 @@ from appliance.measure.gauges import Gauge
 from appliance.plan.optics import Optics
 from appliance.sim.bar import BarModel
 from appliance.sim.crosshead import Crosshead
-from appliance.sim.machine import SimMachine
+from appliance.sim.machine import MachineWithSpecimen
 from appliance.sim.materials import ElasticPlastic, MooneyRivlin
 from appliance.sim.scene import SpecimenScene, SpeckleCoat
 from appliance.sim.specimen import Specimen
 from appliance.sim.trigger import SimTriggerController
 from hal.camera.base import Frame
 from hal.clock import Pace, SimClock
-from hal.registry import camera_from_url, frame_from_url
+from hal.registry import camera_from_url, machine_from_url
 
 
 @dataclass(frozen=True)
@@ -137,7 +138,7 @@ class SimWorld:
         self.pace = pace
         self.clock = SimClock(pace)
         self.bar = BarModel(self.specimen, self.material)
-        self.machine = SimMachine(
+        self.machine = MachineWithSpecimen(
             self.bar,
             Crosshead(),
             encoder_counts_per_mm=encoder_counts_per_mm,
@@ -178,7 +179,7 @@ class SimWorld:
             hang_after_s=camera_hang_after_s,
             trigger_line=self.trigger,
         )
-        self.frame = frame_from_url("sim://frame", machine=self.machine, clock=self.clock)
+        self.controller = machine_from_url("sim://machine", machine=self.machine, clock=self.clock)
 
     @classmethod
     def from_config(cls, config: Config, optics: Optics) -> SimWorld:

@@ -38,7 +38,7 @@ A thin backend, honest about what V4L2 and OpenCV give:
 * Errors: a grab that fails while armed (camera unplugged) ends the capture thread; `fetch`
   then raises `HardwareConnectError`. There is no reconnection.
 
-Never exercised on the CI machine (no V4L2 device exists there); the same protocol tests as
+Never exercised on the CI host (no V4L2 device exists there); the same protocol tests as
 the other cameras run against it wherever ``/dev/video*`` exists.
 """
 

@@ -26,7 +26,7 @@ from appliance.measure.frame_measurer import StrainSample
 from appliance.measure.gauges import Calibration, Gauge, StrainGaugesLayout, StrainReading
 from appliance.run.outputs import RunFacts
 from hal.camera.base import Frame
-from hal.frame.base import FrameState
+from hal.machine.base import MachineState
 
 MBPOLL = shutil.which("mbpoll")
 SOCAT = shutil.which("socat")
@@ -39,7 +39,7 @@ needs_socat = pytest.mark.skipif(
 )
 
 MBPOLL_TIMEOUT_S = 5.0
-"""mbpoll's response timeout (-o): generous, for a loaded 2-core machine."""
+"""mbpoll's response timeout (-o): generous, for a loaded 2-core host."""
 
 _VALUE_LINE = re.compile(r"^\[(\d+)\]:\s+(\S+)(?:\s+\(-?\d+\))?\s*$", re.MULTILINE)
 """A value line; a 16-bit value >= 32768 is followed by its signed reading in parentheses."""
@@ -153,7 +153,7 @@ def make_sample(
     status: tuple[int, ...] = (0, 0, 0, 0),
     data_valid: bool = True,
     reference_updates: int = 0,
-    machine: FrameState | None = None,
+    machine: MachineState | None = None,
     latency_s: float = 0.00125,
 ) -> StrainSample:
     """A sample with known numbers, built directly (no tracking)."""

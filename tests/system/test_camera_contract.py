@@ -3,7 +3,7 @@
 Backends: the simulated camera (a trivial scene on a fast simulation clock), the Aravis
 backend over Aravis' fake GigE Vision camera on 127.0.0.1 (skipped outside a loopback-only
 network namespace), and the V4L2 backend on the first ``/dev/video*`` (skipped where there is
-none, as on the CI machine). Backends without a software trigger (V4L2) must refuse SOFTWARE
+none, as on the CI host). Backends without a software trigger (V4L2) must refuse SOFTWARE
 preparation; the trigger and timeout behaviours are skipped for them.
 
 Timing never decides a result except as a generous upper bound.
@@ -31,7 +31,7 @@ from hal.errors import HardwareConfigError, HardwareTimeout
 from tests.system.aravis_peers import GIGE_SKIP_REASON, FakeGvCamera
 
 GENEROUS_S = 5.0
-"""Fetch timeout and upper bound on waits: a loaded 2-core machine still meets it."""
+"""Fetch timeout and upper bound on waits: a loaded 2-core host still meets it."""
 
 V4L2_DEVICES = sorted(glob.glob("/dev/video*"))
 

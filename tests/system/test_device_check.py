@@ -1,5 +1,5 @@
-"""`extensometer camera-check` and `frame-check` as an installer runs them, on real peers:
-Aravis' fake GigE Vision camera and a pymodbus frame controller, both on loopback."""
+"""`extensometer camera-check` and `machine-check` as an installer runs them, on real peers:
+Aravis' fake GigE Vision camera and a pymodbus machine controller, both on loopback."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 
 from appliance.sim.controller_server import ControllerServer
 from tests.system.aravis_peers import FakeGvCamera, needs_gige
-from tests.system.frame_controller_peers import SimulatedController
+from tests.system.machine_controller_peers import SimulatedController
 from tests.system.modbus_peers import free_tcp_port
 
 EXTENSOMETER = str(Path(sys.executable).with_name("extensometer"))
@@ -64,12 +64,12 @@ def test_camera_check_names_an_absent_camera_and_a_bad_option():
     assert bad.stderr.count("\n") == 1
 
 
-def test_frame_check_reads_the_controller_state_and_names_a_dead_one():
+def test_machine_check_reads_the_controller_state_and_names_a_dead_one():
     controller = SimulatedController()
     port = free_tcp_port()
     with ControllerServer(controller) as server:
         server.serve_tcp(port)
-        done = _cli("frame-check", "--frame", f"modbus-tcp://127.0.0.1:{port}", "--json")
+        done = _cli("machine-check", "--machine", f"modbus-tcp://127.0.0.1:{port}", "--json")
     assert done.returncode == 0, done.stderr
     report = json.loads(done.stdout)
     state = controller.machine.state_at(controller.machine.clock())
@@ -77,8 +77,8 @@ def test_frame_check_reads_the_controller_state_and_names_a_dead_one():
     assert report["state"]["crosshead_mm"] == pytest.approx(state["crosshead_mm"], rel=1e-6)
     assert report["state"]["force_n"] == pytest.approx(state["force_n"], rel=1e-6)
     assert report["latency_ms"]["p50"] <= report["latency_ms"]["p99"]
-    dead = _cli("frame-check", "--frame", f"modbus-tcp://127.0.0.1:{port}")
+    dead = _cli("machine-check", "--machine", f"modbus-tcp://127.0.0.1:{port}")
     assert dead.returncode == 1 and dead.stderr.count("\n") == 1
     assert f"modbus-tcp://127.0.0.1:{port}" in dead.stderr
-    bad = _cli("frame-check", "--frame", "modbus-tcp://127.0.0.1:99999")
-    assert bad.returncode == 2 and bad.stderr.startswith("extensometer: error: frame-check: ")
+    bad = _cli("machine-check", "--machine", "modbus-tcp://127.0.0.1:99999")
+    assert bad.returncode == 2 and bad.stderr.startswith("extensometer: error: machine-check: ")

@@ -1,5 +1,5 @@
 """Whole tests on real protocol peers: a GigE Vision camera filming a stretching specimen and a
-Modbus TCP frame controller, measured by `extensometer run` and by `run_test` itself.
+Modbus TCP machine controller, measured by `extensometer run` and by `run_test` itself.
 
 The camera is `tests.system.gv_specimen_camera` (an Aravis GvFakeCamera on 127.0.0.2 whose
 images are a rendered speckle specimen with a truth log keyed by device timestamp); the
@@ -32,7 +32,7 @@ from appliance.sim.controller_server import ControllerServer
 from firmware_bridge.simulator import SimulatedMcu
 from tests.system.aravis_peers import needs_gige, specimen_camera
 from tests.system.firmware_peers import firmware_binaries
-from tests.system.frame_controller_peers import SimulatedController
+from tests.system.machine_controller_peers import SimulatedController
 from tests.system.modbus_peers import free_tcp_port
 
 pytestmark = needs_gige
@@ -40,11 +40,11 @@ pytestmark = needs_gige
 OPTICS = "[optics]\nfocal_length_mm = 25.0\nobject_distance_mm = 250.0\npixel_size_um = 5.0\n"
 
 
-def _config_text(camera_url: str, frame_url: str, **tables: str) -> str:
+def _config_text(camera_url: str, machine_url: str, **tables: str) -> str:
     body = {
         "camera": f'url = "{camera_url}"\nexposure_us = 1000\nframe_rate_hz = 20\n'
         "outage_timeout_s = 30",
-        "frame": f'url = "{frame_url}"\naccepts_commands = true',
+        "machine": f'url = "{machine_url}"\naccepts_commands = true',
         "gauge": "length_mm = 10.0\npoints_per_mark = 3",
         "run": "speed_mm_min = 30.0\nuntil_break = false",
         "tracking": "subset_px = 31\nmin_subset_px = 11",
@@ -59,9 +59,9 @@ def _rows(path: Path) -> list[dict[str, str]]:
 
 
 def test_extensometer_run_measures_a_gige_specimen_against_its_truth(tmp_path):
-    """`extensometer run` on the GigE camera and the Modbus TCP frame: strain within 3e-4 of
-    the truth log at every measured frame, the frame commanded, the recording replayed. The
-    stream loses no frame; the live loop may drop some it has no room for while the machine
+    """`extensometer run` on the GigE camera and the Modbus TCP machine: strain within 3e-4 of
+    the truth log at every measured frame, the machine commanded, the recording replayed. The
+    stream loses no frame; the live loop may drop some it has no room for while the host
     is busy (counted, and only frames the camera delivered): the rate it sustains is a
     benchmark figure, not this test's."""
     controller = SimulatedController()
@@ -135,7 +135,7 @@ def test_extensometer_run_measures_a_gige_specimen_against_its_truth(tmp_path):
 
 def test_a_camera_that_goes_away_mid_test_is_waited_for_and_the_test_goes_on(tmp_path):
     config = parse_config(
-        _config_text("aravis://127.0.0.2", "", frame='url = ""\naccepts_commands = false')
+        _config_text("aravis://127.0.0.2", "", machine='url = ""\naccepts_commands = false')
     )
     events: list[DeviceEvent] = []
     samples = []
@@ -196,7 +196,7 @@ def test_a_gige_camera_on_the_firmware_s_trigger_output_is_stamped_with_its_trig
     The first pulse reaches the camera 90 ms late (more than a third of the 200 ms spacing),
     so the first frame's latency baseline is too high until a later frame corrects it.
     The emulated microcontroller stands for a chip of its own: `extensometer run` and the
-    camera are niced so that, on a 2-core machine, they do not starve the emulation's
+    camera are niced so that, on a 2-core host, they do not starve the emulation's
     wall-clock pacing."""
     binaries = firmware_binaries()
     controller = SimulatedController()
@@ -223,7 +223,7 @@ def test_a_gige_camera_on_the_firmware_s_trigger_output_is_stamped_with_its_trig
                 f"modbus-tcp://127.0.0.1:{port}",
                 camera=f'url = "{camera.url}?trigger_line=Software"\n'
                 "exposure_us = 1000\nframe_rate_hz = 5",
-                frame=f'url = "modbus-tcp://127.0.0.1:{port}"\naccepts_commands = true\n'
+                machine=f'url = "modbus-tcp://127.0.0.1:{port}"\naccepts_commands = true\n'
                 "poll_rate_hz = 10",
                 run="speed_mm_min = 30.0\nuntil_break = false\nuntil_strain = 0.03",
                 trigger=f'source = "period"\nurl = "{mcu.port}"',

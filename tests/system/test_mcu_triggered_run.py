@@ -28,7 +28,7 @@ EXTENSOMETER = str(Path(sys.executable).with_name("extensometer"))
 
 def _niced() -> None:
     """The emulated microcontroller stands for a chip of its own: the appliance runs niced so
-    that, on a 2-core machine, it does not starve the emulation's wall-clock pacing."""
+    that, on a 2-core host, it does not starve the emulation's wall-clock pacing."""
     os.nice(10)
 
 
@@ -105,7 +105,7 @@ def test_the_firmware_times_the_exposures_of_a_simulated_test(binaries, tmp_path
 
 @needs_mbpoll
 def test_the_whole_chain_follows_a_speed_change_over_modbus_and_the_firmware(binaries, tmp_path):
-    """Simulated frame behind Modbus TCP, firmware under simavr re-timed on the way, the
+    """Simulated machine behind Modbus TCP, firmware under simavr re-timed on the way, the
     simulated camera on its triggers, the strain on the Modbus server."""
     port = free_tcp_port()
     with SimulatedMcu(binaries["elf"], binaries["harness"], tmp_path / "mcu") as mcu:
@@ -126,7 +126,7 @@ def test_the_whole_chain_follows_a_speed_change_over_modbus_and_the_firmware(bin
     summary = json.loads(stdout)
     assert served and 0.01 < served[0] < 0.35, "no valid strain was read over Modbus"
     assert summary["exit_status"] == "completed"
-    assert summary["frame_url"].startswith("modbus-tcp://127.0.0.1:")
+    assert summary["machine_url"].startswith("modbus-tcp://127.0.0.1:")
     assert summary["frames_without_controller"] == 0
     assert summary["mcu_triggers_without_time"] == 0
     assert summary["replan_failures"] == 0 and summary["replans"]

@@ -29,7 +29,7 @@ from appliance.live.modbus_map import BY_NAME, RUN_STATE_CODES, StatusBit
 from appliance.live.modbus_server import ServerStartError, StrainRegisterServer
 from appliance.measure.tracking import TrackStatus
 from appliance.run.state import RunState
-from hal.frame.base import FrameState
+from hal.machine.base import MachineState
 from tests.system.modbus_peers import (
     free_tcp_port,
     make_facts,
@@ -43,7 +43,7 @@ from tests.system.modbus_peers import (
     pty_pair,
 )
 
-MACHINE = FrameState(
+MACHINE = MachineState(
     crosshead_mm=3.25, speed_mm_min=10.0, force_n=1520.5, running=True, timestamp_ns=0
 )
 

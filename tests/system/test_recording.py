@@ -107,7 +107,7 @@ def test_foxglove_schemas_decode_every_channel(recorded):
         assert type(full).__name__ == "RawImage" and full.encoding == "mono8"
         assert (full.width, full.height) == (1024, 2048) and len(full.data) == 1024 * 2048
         assert all(type(e).__name__ == "Log" for e in images["/log"])
-        for schema, channel, message in reader.iter_messages(topics=["/strain", "/frame/state"]):
+        for schema, channel, message in reader.iter_messages(topics=["/strain", "/machine/state"]):
             assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
             properties = json.loads(schema.data)["properties"]
             assert properties == JSON_SCHEMAS[schema.name]["properties"]

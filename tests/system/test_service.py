@@ -187,8 +187,8 @@ def test_a_stalled_measurement_stops_the_watchdog_and_sigterm_still_closes_the_r
 @pytest.mark.parametrize(
     ("camera", "watchdog_usec", "message"),
     [
-        ('url = "gige://192.0.2.1"\n[frame]\nurl = ""', None, "unknown scheme gige://"),
-        ('url = "aravis://192.0.2.1"', None, "[frame] url: sim://frame is simulated"),
+        ('url = "gige://192.0.2.1"\n[machine]\nurl = ""', None, "unknown scheme gige://"),
+        ('url = "aravis://192.0.2.1"', None, "[machine] url: sim://machine is simulated"),
         ("min_frame_rate_hz = 0.5", 3_000_000, "[camera] min_frame_rate_hz: a frame period of 2"),
     ],
 )

@@ -224,7 +224,7 @@ def test_the_unit_is_hardened_without_breaking_numba_or_the_devices():
 
 def test_the_example_configuration_loads_with_the_service_defaults():
     config = load_config(EXAMPLE_CONFIG)
-    assert config.camera.url == "sim://camera" and config.frame.url == "sim://frame"
+    assert config.camera.url == "sim://camera" and config.machine.url == "sim://machine"
     assert config.modbus.tcp == "127.0.0.1:5020"
     assert config.rerun.serve == "127.0.0.1:9876"
     assert config.record.path == ""

@@ -1,6 +1,6 @@
 """The V4L2 camera backend.
 
-No V4L2 device exists on the CI machine: the tests that need one are skipped unless
+No V4L2 device exists on the CI host: the tests that need one are skipped unless
 ``/dev/video*`` exists (the protocol behaviours run against it in ``test_camera_contract.py``
 there too). What needs no device (URL parsing, the refusals that come before any ioctl) runs
 everywhere.

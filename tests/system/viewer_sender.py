@@ -41,8 +41,8 @@ from appliance.run.outputs import RunFacts
 from hal.camera.base import Region, TriggerInfo, TriggerMode
 from hal.camera.sim import SimCamera
 from hal.clock import SimClock
-from hal.frame.base import FrameState
-from hal.frame.sim import SimFrame
+from hal.machine.base import MachineState
+from hal.machine.sim import SimMachine
 
 HEIGHT, WIDTH = 320, 200
 POINTS = np.array(
@@ -78,8 +78,8 @@ class StretchingScene:
 class LinearMachine:
     """A crosshead at constant speed and a force proportional to the scene's strain."""
 
-    def state(self, t_s: float) -> FrameState:
-        return FrameState(
+    def state(self, t_s: float) -> MachineState:
+        return MachineState(
             crosshead_mm=0.5 * t_s,
             speed_mm_min=30.0,
             force_n=FORCE_N_PER_STRAIN * STRAIN_RATE * t_s,
@@ -130,7 +130,7 @@ def measure(output, frames: int, test_id: str) -> tuple[list[StrainSample], Loop
     )
     camera.open()
     camera.prepare(TriggerInfo(mode=TriggerMode.INTERNAL, rate_hz=FRAME_RATE_HZ, exposure_us=100.0))
-    machine = SimFrame("sim://frame", machine=LinearMachine(), clock=clock)
+    machine = SimMachine("sim://machine", machine=LinearMachine(), clock=clock)
     machine.open()
     samples: list[StrainSample] = []
     calibration = Calibration(SCALE_MM_PER_PX)
@@ -148,7 +148,7 @@ def measure(output, frames: int, test_id: str) -> tuple[list[StrainSample], Loop
                 calibration=calibration,
                 gauge_length_mm=gauges.gauge_length_mm,
                 epoch_offset_ns=EPOCH_OFFSET_NS,
-                devices={"camera": "sim://camera", "frame": "sim://frame"},
+                devices={"camera": "sim://camera", "machine": "sim://machine"},
                 facts={"test_id": test_id, "scene": "uniaxial stretch"},
             )
         )

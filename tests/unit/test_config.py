@@ -42,10 +42,10 @@ def test_empty_file_gives_the_defaults_and_values_are_typed():
         ("[camera]\nmin_exposure_us = 3e4\n", "[camera] min_exposure_us: must be <= max_exp"),
         ("[camera\n", "run.toml: invalid TOML"),
         ("[camera]\nregion_width_px = 512\n", "[camera] region_x_px: required with the other"),
-        ("[frame]\nregisters = 3\n", "run.toml: [frame] registers: must be a table"),
+        ("[machine]\nregisters = 3\n", "run.toml: [machine] registers: must be a table"),
         (
-            "[frame.registers]\npreset = 'generic'\nforce_n = { data_type = 'float' }\n",
-            "run.toml: [frame.registers.force_n] data_type: must be one of",
+            "[machine.registers]\npreset = 'generic'\nforce_n = { data_type = 'float' }\n",
+            "run.toml: [machine.registers.force_n] data_type: must be one of",
         ),
     ],
 )
@@ -57,17 +57,17 @@ def test_every_bad_value_is_named_in_one_line(text, message):
 
 def test_hardware_tables_are_typed_and_the_register_map_defaults_to_the_generic_preset():
     from appliance.config import register_map_of
-    from hal.frame.register_map import GENERIC_CONTROLLER
+    from hal.machine.register_map import GENERIC_CONTROLLER
 
     config = parse_config(
         "[camera]\nurl = 'aravis://127.0.0.1'\npixel_format = 'Mono16'\nregion_x_px = 0\n"
         "region_y_px = 8\nregion_width_px = 512\nregion_height_px = 256\n"
-        "[frame]\nurl = 'modbus-tcp://127.0.0.1:5020'\npoll_rate_hz = 200\n"
-        "[frame.registers]\npreset = 'generic'\n"
+        "[machine]\nurl = 'modbus-tcp://127.0.0.1:5020'\npoll_rate_hz = 200\n"
+        "[machine.registers]\npreset = 'generic'\n"
         "force_n = { address = 10, table = 'holding', data_type = 'int32', scale = 0.1 }\n"
         "[gauge]\ncentre_x_px = 100.5\naxis_deg = 0\n"
     )
-    assert config.camera.region_height_px == 256 and config.frame.poll_rate_hz == 200.0
+    assert config.camera.region_height_px == 256 and config.machine.poll_rate_hz == 200.0
     assert config.gauge.axis_deg == 0.0 and config.gauge.centre_y_px is None
     custom = register_map_of(config)
     assert custom.entries()["force_n"].address == 10 and custom.entries()["force_n"].scale == 0.1

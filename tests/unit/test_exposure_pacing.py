@@ -10,12 +10,12 @@ from appliance.plan.optics import Optics
 from appliance.plan.pacing import ExposurePacer
 from appliance.plan.trigger_plan import TriggerReplanner, plan_triggers
 from appliance.sim.bar import BarModel
-from appliance.sim.machine import SimMachine
+from appliance.sim.machine import MachineWithSpecimen
 from appliance.sim.materials import ElasticPlastic
 from appliance.sim.specimen import Specimen
 from appliance.sim.trigger import SimTriggerController
 from hal.camera.base import TriggerInfo, TriggerMode
-from hal.frame.base import FrameState
+from hal.machine.base import MachineState
 from tests.unit.test_loop import StretchingScene, _camera
 
 OPTICS = Optics(25.0, 250.0, 5.0)
@@ -27,13 +27,13 @@ def _plan(speed_mm_min: float):
     return plan_triggers(exposure, tick_hz=TICK_HZ)
 
 
-def _reading(speed_mm_min: float) -> FrameState:
-    return FrameState(0.0, speed_mm_min, 0.0, True, 0)
+def _reading(speed_mm_min: float) -> MachineState:
+    return MachineState(0.0, speed_mm_min, 0.0, True, 0)
 
 
 @pytest.fixture
 def devices():
-    machine = SimMachine(BarModel(Specimen.iso6892_flat(), ElasticPlastic.steel_s355()))
+    machine = MachineWithSpecimen(BarModel(Specimen.iso6892_flat(), ElasticPlastic.steel_s355()))
     trigger = SimTriggerController(machine, tick_hz=TICK_HZ)
     first = _plan(50.0)
     trigger.configure(first)

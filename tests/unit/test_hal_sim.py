@@ -4,8 +4,8 @@ import pytest
 from hal.camera.base import CameraSettings, PixelFormat, Region, TriggerInfo, TriggerMode
 from hal.clock import Pace, SimClock
 from hal.errors import HardwareConfigError, HardwareTimeout
-from hal.frame.base import FrameState
-from hal.registry import camera_from_url, frame_from_url
+from hal.machine.base import MachineState
+from hal.registry import camera_from_url, machine_from_url
 
 
 class RampScene:
@@ -33,7 +33,7 @@ class LinearMachine:
 
     def state(self, t_s):
         x = self.x0 + self.speed / 60.0 * (t_s - self.t0)
-        return FrameState(x, self.speed, 2.0 * x, self.speed != 0, int(t_s * 1e9))
+        return MachineState(x, self.speed, 2.0 * x, self.speed != 0, int(t_s * 1e9))
 
     def start(self, speed_mm_min, t_s):
         self.x0, self.t0, self.speed = self.state(t_s).crosshead_mm, t_s, speed_mm_min
@@ -133,16 +133,16 @@ def test_noise_is_seeded_and_has_the_requested_level():
     assert np.std(a - clean) == pytest.approx(2.0, rel=0.1)
 
 
-def test_sim_frame_reads_the_shared_clock_and_obeys_configuration():
+def test_sim_machine_reads_the_shared_clock_and_obeys_configuration():
     clock, machine = SimClock(), LinearMachine()
-    frame = frame_from_url("sim://frame", machine=machine, clock=clock)
-    frame.open()
-    frame.start(60.0)
+    controller = machine_from_url("sim://machine", machine=machine, clock=clock)
+    controller.open()
+    controller.start(60.0)
     clock.wait_until(2.0)
-    state = frame.read_state()
+    state = controller.read_state()
     assert state.crosshead_mm == pytest.approx(2.0) and state.running
     assert state.timestamp_ns == 2_000_000_000
-    locked = frame_from_url("sim://frame", machine=machine, clock=clock, accepts_commands=False)
+    locked = machine_from_url("sim://machine", machine=machine, clock=clock, accepts_commands=False)
     with pytest.raises(HardwareConfigError, match="command stop"):
         locked.stop()
 
@@ -151,7 +151,7 @@ def test_registry_names_the_bad_url():
     with pytest.raises(HardwareConfigError, match="unknown scheme gige://"):
         camera_from_url("gige://1.2.3.4")
     with pytest.raises(HardwareConfigError, match="no scheme"):
-        frame_from_url("localhost:502")
+        machine_from_url("localhost:502")
 
 
 def test_real_time_clock_sleeps_with_the_injected_sleep():

@@ -2,8 +2,8 @@
 
 The camera is the simulator, whose scene fails inside a window of simulated time (an outage
 as the backend reports it: `HardwareConnectError` from `fetch`); the controller is a small
-`TensileFrame` whose reads fail for a stretch of calls. `PolledFrame` runs over the
-simulated frame.
+`TestingMachine` whose reads fail for a stretch of calls. `PolledMachine` runs over the
+same controller.
 """
 
 from __future__ import annotations
@@ -17,13 +17,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from appliance.devices.polled_machine import PolledFrame
+from appliance.devices.polled_machine import PolledMachine
 from appliance.measure.frame_measurer import StopCriteria
 from appliance.run.loop import DeviceEvent, MeasurementLoop
 from appliance.run.state import RunState
 from hal.camera.base import Frame, Region
 from hal.errors import HardwareConnectError, HardwareTimeout
-from hal.frame.base import FrameState
+from hal.machine.base import MachineState
 from tests.unit.test_loop import StretchingScene, _camera, _setup
 
 
@@ -79,11 +79,11 @@ class FlakyController:
     def close(self) -> None:
         pass
 
-    def read_state(self, timeout_s: float = 1.0) -> FrameState:
+    def read_state(self, timeout_s: float = 1.0) -> MachineState:
         self.calls += 1
         if self.first_failure <= self.calls <= self.last_failure or self.fail.is_set():
             raise HardwareTimeout(f"{self.url}: no reply within {timeout_s:g} s")
-        return FrameState(1.0, 10.0, 5.0, True, time.monotonic_ns())
+        return MachineState(1.0, 10.0, 5.0, True, time.monotonic_ns())
 
     def start(self, speed_mm_min: float, timeout_s: float = 1.0) -> None:
         pass
@@ -95,11 +95,11 @@ class FlakyController:
         pass
 
 
-def _run(camera, frame=None, *, outage_timeout_s: float, frames: int = 20):
+def _run(camera, machine=None, *, outage_timeout_s: float, frames: int = 20):
     samples, events = [], []
     loop = MeasurementLoop(
         camera,
-        frame,
+        machine,
         _setup,
         sinks=[samples.append],
         block_when_full=True,
@@ -161,13 +161,13 @@ def test_controller_gaps_leave_samples_without_machine_state_and_are_reported():
     assert missing == [3, 4, 5, 6, 7]
     assert all(s.data_valid for s in samples)
     assert result.controller_outages == 1 and result.samples_without_controller == 5
-    assert [(e.device, e.kind) for e in events] == [("frame", "lost"), ("frame", "restored")]
+    assert [(e.device, e.kind) for e in events] == [("machine", "lost"), ("machine", "restored")]
     assert "no reply" in events[0].text
 
 
-def test_polled_frame_hands_out_fresh_readings_and_refuses_stale_ones():
+def test_polled_machine_hands_out_fresh_readings_and_refuses_stale_ones():
     controller = FlakyController(first_failure=0, last_failure=-1)
-    polled = PolledFrame(controller, rate_hz=200.0, max_age_s=0.2)
+    polled = PolledMachine(controller, rate_hz=200.0, max_age_s=0.2)
     polled.open()
     try:
         state = polled.read_state()
@@ -201,9 +201,9 @@ def test_polled_frame_hands_out_fresh_readings_and_refuses_stale_ones():
     polled.close()
 
 
-def test_polled_frame_events_reach_the_loop_as_controller_gaps():
+def test_polled_machine_events_reach_the_loop_as_controller_gaps():
     controller = FlakyController(first_failure=0, last_failure=-1)
-    polled = PolledFrame(controller, rate_hz=100.0, max_age_s=0.1)
+    polled = PolledMachine(controller, rate_hz=100.0, max_age_s=0.1)
     polled.open()
     controller.fail.set()
     time.sleep(0.3)
@@ -213,4 +213,4 @@ def test_polled_frame_events_reach_the_loop_as_controller_gaps():
         polled.close()
     assert all(s.machine is None for s in samples) and result.controller_outages == 1
     assert [e.kind for e in events] == ["lost"]
-    assert isinstance(events[0], DeviceEvent) and events[0].device == "frame"
+    assert isinstance(events[0], DeviceEvent) and events[0].device == "machine"

@@ -7,12 +7,12 @@ from scipy.optimize import brentq
 
 from appliance.sim.bar import BarModel, BarPhase
 from appliance.sim.crosshead import Crosshead
-from appliance.sim.machine import SimMachine
+from appliance.sim.machine import MachineWithSpecimen
 from appliance.sim.materials import ElasticPlastic, MooneyRivlin, NeoHookean
 from appliance.sim.specimen import Specimen
 from hal.clock import SimClock
-from hal.frame.sim import MachineModel
-from hal.registry import frame_from_url
+from hal.machine.sim import MachineModel
+from hal.registry import machine_from_url
 
 
 @pytest.fixture(scope="module")
@@ -431,7 +431,7 @@ def test_crosshead_first_time_at_a_position():
 
 
 def test_machine_state_follows_crosshead_and_bar(rubber_bar):
-    machine = SimMachine(rubber_bar, Crosshead(max_acceleration_mm_s2=100.0))
+    machine = MachineWithSpecimen(rubber_bar, Crosshead(max_acceleration_mm_s2=100.0))
     assert isinstance(machine, MachineModel)
     machine.start(500.0, 0.0)
     state = machine.state(10.0)
@@ -459,12 +459,12 @@ def test_machine_state_follows_crosshead_and_bar(rubber_bar):
     assert machine.state(broken_at + 100.0).crosshead_mm == 0.0
 
 
-def test_machine_behind_the_sim_frame_and_threads(steel_bar):
+def test_machine_behind_the_sim_controller_and_threads(steel_bar):
     clock = SimClock()
-    machine = SimMachine(steel_bar, encoder_counts_per_mm=None)
-    frame = frame_from_url("sim://frame", machine=machine, clock=clock)
-    frame.open()
-    frame.start(10.0)
+    machine = MachineWithSpecimen(steel_bar, encoder_counts_per_mm=None)
+    controller = machine_from_url("sim://machine", machine=machine, clock=clock)
+    controller.open()
+    controller.start(10.0)
     errors = []
 
     def read():
@@ -484,7 +484,7 @@ def test_machine_behind_the_sim_frame_and_threads(steel_bar):
         reader.join()
     assert not errors
     clock.wait_until(60.0)
-    state = frame.read_state()
+    state = controller.read_state()
     assert state.encoder_counts is None
     assert state.timestamp_ns == 60_000_000_000
     assert state.force_n == pytest.approx(steel_bar.force_n(state.crosshead_mm), rel=1e-12)

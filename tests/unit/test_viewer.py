@@ -10,6 +10,7 @@ from appliance.config import RerunConfig
 from appliance.errors import InputError
 from appliance.live.viewer import RerunService, RerunViewer, has_sinks, proxy_url, viewer_blueprint
 from appliance.run.loop import LoopResult
+from appliance.run.state import ExitStatus
 
 
 def _free_port() -> int:
@@ -66,7 +67,7 @@ def test_a_service_listens_on_loopback_until_closed():
 def test_a_viewer_without_a_test_counts_samples_as_dropped_and_ends_quietly(tmp_path):
     viewer = RerunViewer(RerunConfig(save=str(tmp_path / "{test}.rrd")))
     viewer(object())
-    viewer.end(LoopResult(exit_status="fault", reason="camera missing"))
+    viewer.end(LoopResult(exit_status=ExitStatus.FAULT, reason="camera missing"))
     viewer.close()
     assert viewer.samples_dropped == 1 and viewer.samples_shown == 0
     assert viewer.recording_id is None and viewer.problem is None

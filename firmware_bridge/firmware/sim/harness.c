@@ -30,7 +30,7 @@
  *     simulation the harness sleeps (timer slack 1 us) while simulated time / FACTOR is more
  *     than 20 us ahead of wall time
  *     since the start (default FACTOR 1: ticks track the wall clock, so a host's clock sync
- *     and its time-outs mean what they would on hardware). When the host machine is too slow
+ *     and its time-outs mean what they would on hardware). When the host is too slow
  *     to keep up, simulated time falls behind; a lag over 20 ms is forgiven (the wall-clock
  *     origin moves) instead of being caught up in a burst, and counted as a slip. FACTOR 0
  *     runs as fast as possible. simavr's own sleep (usleep while the AVR sleeps) is replaced

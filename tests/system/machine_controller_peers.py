@@ -1,9 +1,10 @@
-"""Real frame-controller peers for the Modbus frame client's tests: pymodbus servers on loopback.
+"""Real machine-controller peers for the Modbus machine client's tests: pymodbus servers on
+loopback.
 
 * `ControllerServer` and `MachineRegisters` come from `appliance.sim.controller_server`: a
   pymodbus server on an asyncio thread, TCP on 127.0.0.1 or RTU on one end of a socat pty
   pair, answering from a register source, which may stop serving and serve again.
-* `SimulatedController`: `MachineRegisters` for a live frame: `TinyMachine` (crosshead moving at a
+* `SimulatedController`: `MachineRegisters` for a live machine: `TinyMachine` (crosshead moving at a
   set speed, force from a stiffness, encoder counts) behind a `RegisterMap` (the generic
   preset by default). It honours the map's command coils or command registers and the speed
   set point, logging every command in the order it arrived.
@@ -11,12 +12,12 @@
   (tests/system/data/controller_registers.csv: time and raw register values per row), held
   at one row or played at the recorded pace. It refuses writes (exception 1).
 * `SilentTcpPeer`: accepts TCP connections and never answers (a controller that hangs).
-* `GarbageRtuPeer`: answers every request on a pty with bytes that are no valid RTU frame.
+* `GarbageRtuPeer`: answers every request on a pty with bytes that are no valid RTU message.
 
 `TinyMachine` is a few lines on purpose: the tests compare what the client reads with it
 (bracketed by its state just before and just after a read, so no timing decides a result).
 What the peers do not model: controller scan cycles, filtering, interlocks, a shared RS-485
-line, inter-frame timing on the wire (a pty ignores baud rate).
+line, inter-message timing on the wire (a pty ignores baud rate).
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ import serial
 from pymodbus.constants import ExcCodes
 
 from appliance.sim.controller_server import MachineRegisters
-from hal.frame.register_map import BIT_TABLES, GENERIC_CONTROLLER, RegisterMap
+from hal.machine.register_map import BIT_TABLES, GENERIC_CONTROLLER, RegisterMap
 
 DATA = Path(__file__).parent / "data"
 RECORDED_TABLE = DATA / "controller_registers.csv"
@@ -111,7 +112,7 @@ class TinyMachine:
 
 
 class SimulatedController(MachineRegisters):
-    """A live frame controller: `TinyMachine` served through `register_map`.
+    """A live machine controller: `TinyMachine` served through `register_map`.
 
     Args:
         register_map: the layout it serves (the generic preset by default).

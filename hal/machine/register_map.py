@@ -1,13 +1,13 @@
-"""Register maps of tensile-frame controllers, as data: where each quantity lives and how.
+"""Register maps of tensile-machine controllers, as data: where each quantity lives and how.
 
-A frame controller exposes the crosshead position, speed and force (and maybe a status word and
+A machine controller exposes the crosshead position, speed and force (and maybe a status word and
 an encoder count) in Modbus registers, and takes commands in coils or registers. Where they
 live differs from controller to controller, so the map is configuration, not code: one
 `Register` per quantity (address, register table, data type, scale, offset, unit, word order),
-gathered in a `RegisterMap`. `ModbusFrame` (hal/frame/modbus.py) reads and writes through it;
+gathered in a `RegisterMap`. `ModbusMachine` (hal/machine/modbus.py) reads and writes through it;
 this module talks to no network.
 
-Entries of a map (the names are the keys of `[frame.registers]` in the configuration):
+Entries of a map (the names are the keys of `[machine.registers]` in the configuration):
 
 * reads: `crosshead_mm`, `speed_mm_min`, `force_n` (required, numeric); `running` (optional,
   bool); `encoder_counts` (optional, an integer type);
@@ -71,14 +71,14 @@ absent = "none", so nothing is inherited, least of all a command address, unless
 `max_gap` (registers, default 8), and one sub-table per entry that overrides the preset's entry
 key by key, or `false` to drop an optional entry of the preset::
 
-    [frame.registers]
+    [machine.registers]
     preset = "generic"
     force_n = { address = 10, table = "holding", data_type = "int32", scale = 0.1, unit = "N" }
     return_to_start = false
 
 A preset's `bit` (or `value`) is dropped when the override makes the entry something it does
 not apply to (a coil, say); a `bit` or `value` the user gives is checked. Every error is one
-line naming the place and the key (`run.toml: [frame.registers.force_n] data_type: must be
+line naming the place and the key (`run.toml: [machine.registers.force_n] data_type: must be
 one of int16, uint16, int32, uint32, float32, bool, got 'float'`). `to_table` is the inverse
 (the whole map, preset "none").
 
@@ -551,8 +551,8 @@ class RegisterMap:
         Args:
             table: {"preset": "generic" | "none", "max_gap": int, ENTRY: {FIELD: value} |
                 False, ...}.
-            where: how the user names `table` in messages, e.g. "run.toml: [frame.registers]";
-                an entry is then named "run.toml: [frame.registers.force_n]".
+            where: how the user names `table` in messages, e.g. "run.toml: [machine.registers]";
+                an entry is then named "run.toml: [machine.registers.force_n]".
 
         Raises:
             HardwareConfigError: one line naming `where`, the entry and the key.

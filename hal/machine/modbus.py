@@ -1,4 +1,4 @@
-"""Modbus frame controller client: the `TensileFrame` protocol over Modbus TCP or RTU.
+"""Modbus machine controller client: the `TestingMachine` protocol over Modbus TCP or RTU.
 
 URLs (the registry maps both schemes here):
 
@@ -9,7 +9,7 @@ URLs (the registry maps both schemes here):
   by default.
 
 A bad URL piece raises `HardwareConfigError` at construction, one line naming the URL and the
-piece. Where the quantities live is a `RegisterMap` (hal/frame/register_map.py; the generic
+piece. Where the quantities live is a `RegisterMap` (hal/machine/register_map.py; the generic
 preset by default); the read plan is computed once, so `read_state` sends one request per
 coalesced span (one request for the whole generic map) and decodes with pymodbus' converters.
 
@@ -25,24 +25,24 @@ Errors, kept apart as hal/errors.py orders them:
 * an exception response (the controller answered, refusing): `HardwareFault`, naming the
   URL, the entries and registers of the request and the code, e.g. "modbus-tcp://127.0.0.1:
   5020: reading force_n (input 4..5): exception 2 (illegal data address)". The link stays up.
-* no valid reply within the timeout (nothing, or only garbage: an RTU frame with a bad CRC is
+* no valid reply within the timeout (nothing, or only garbage: an RTU message with a bad CRC is
   dropped by pymodbus' framer, so noise on the line ends as a timeout): `HardwareTimeout`.
 * connection refused, closed by the peer, serial device gone, a reply for another request:
   `HardwareConnectError`.
-* a command the frame is not configured to accept, a command or set point the map lacks, a
+* a command the machine is not configured to accept, a command or set point the map lacks, a
   set point the register cannot hold, a bad timeout: `HardwareConfigError`.
 
 Connection loss and backoff. After any transport failure (timeouts included: a late reply
 could otherwise be taken for the next request's) the client drops the connection and is
 "disconnected". A call within the backoff window raises `HardwareConnectError` at once ("...
-next attempt in 0.08 s"), so a measurement thread that reads the frame with every camera frame
+next attempt in 0.08 s"), so a measurement thread that reads the machine with every camera frame
 never waits on a dead controller; the first call after the window tries once to reconnect
 (with a fresh pymodbus client, bounded by the call's timeout) and then does its work. The
 window starts at 0.1 s, doubles with every failed attempt up to 5 s, and is back to 0.1 s after
 a reply. The caller flags the readings it did not get (the appliance records samples without
-controller data). `open` failing leaves the frame in the same state: later calls keep trying.
+controller data). `open` failing leaves the client in the same state: later calls keep trying.
 
-Readings. `FrameState.timestamp_ns` is the host's `time.monotonic_ns()` halfway between the
+Readings. `MachineState.timestamp_ns` is the host's `time.monotonic_ns()` halfway between the
 first request sent and the last reply received (the best guess of when the controller took
 the values, which the protocol does not say). Without a `running` entry, `running` is
 `speed_mm_min != 0`. `encoder_counts` is rounded to an integer, None without the entry.
@@ -54,7 +54,7 @@ Commands (`start`, `stop`, `return_to_start`) are written only when constructed 
 entry is refused rather than started at a speed the controller decides.
 
 `statistics()` counts what happened (see its docstring). Calls are serialised by a lock, so
-a poller thread and a command from another thread may share one `ModbusFrame`.
+a poller thread and a command from another thread may share one `ModbusMachine`.
 
 What it does not do: poll in the background (appliance/devices/polled_machine.py does), read a
 controller clock, verify the controller's identity, check that a command took effect (a
@@ -86,8 +86,8 @@ from hal.errors import (
     HardwareFault,
     HardwareTimeout,
 )
-from hal.frame.base import FrameState
-from hal.frame.register_map import (
+from hal.machine.base import MachineState
+from hal.machine.register_map import (
     BIT_TABLES,
     GENERIC_CONTROLLER,
     ReadSpan,
@@ -146,7 +146,7 @@ def parse_url(url: str) -> TcpLink | RtuLink:
     """
 
     def bad(piece: str, reason: str) -> HardwareConfigError:
-        return HardwareConfigError(f"frame URL {url!r}: {piece}: {reason}")
+        return HardwareConfigError(f"machine URL {url!r}: {piece}: {reason}")
 
     split = urlsplit(url)
     if split.scheme not in ("modbus-tcp", "modbus-rtu"):
@@ -286,8 +286,8 @@ def _cause(exc: BaseException | None) -> str:
     return str(exc) or type(exc).__name__
 
 
-class ModbusFrame:
-    """A tensile frame controller reached over Modbus TCP or RTU.
+class ModbusMachine:
+    """A testing machine controller reached over Modbus TCP or RTU.
 
     Args:
         url: `modbus-tcp://HOST:PORT?unit=1` or `modbus-rtu:///dev/ttyX?baud=115200&parity=N&
@@ -295,7 +295,7 @@ class ModbusFrame:
         register_map: where the quantities live; None = `GENERIC_CONTROLLER`.
         accepts_commands: whether start / stop / return_to_start may be written (off: they
             raise HardwareConfigError naming the command).
-        **_: other resources the registry hands to every frame backend (ignored).
+        **_: other resources the registry hands to every machine backend (ignored).
 
     Raises:
         HardwareConfigError: a bad URL piece.
@@ -363,7 +363,7 @@ class ModbusFrame:
             self._wanted = False
             self._drop()
 
-    def read_state(self, timeout_s: float = 1.0) -> FrameState:
+    def read_state(self, timeout_s: float = 1.0) -> MachineState:
         """The controller's state: one request per span of the read plan.
 
         Raises:
@@ -385,7 +385,7 @@ class ModbusFrame:
         speed = float(values["speed_mm_min"])
         running = values.get("running")
         counts = values.get("encoder_counts")
-        return FrameState(
+        return MachineState(
             crosshead_mm=float(values["crosshead_mm"]),
             speed_mm_min=speed,
             force_n=float(values["force_n"]),
@@ -437,7 +437,7 @@ class ModbusFrame:
             "max_latency_ms": _ms(self._max_latency_s),
         }
 
-    def __enter__(self) -> ModbusFrame:
+    def __enter__(self) -> ModbusMachine:
         self.open()
         return self
 
@@ -602,7 +602,7 @@ class ModbusFrame:
     def _command(self, name: str, speed_mm_min: float | None, timeout_s: float) -> None:
         if not self.accepts_commands:
             raise HardwareConfigError(
-                f"{self.url}: command {name} refused: this frame is not configured to accept "
+                f"{self.url}: command {name} refused: this machine is not configured to accept "
                 "commands (accepts_commands is off)"
             )
         register: Register | None = getattr(self.register_map, name)

@@ -1,4 +1,4 @@
-"""The tensile frame interface: what the appliance reads from and asks of the machine.
+"""The testing machine interface: what the appliance reads from and asks of the machine.
 
 Reading the state works on every controller. Commands (start at a speed, stop, return to the
 start position) work only on controllers configured to accept them; the others raise
@@ -12,7 +12,7 @@ from typing import Protocol, runtime_checkable
 
 
 @dataclass(frozen=True)
-class FrameState:
+class MachineState:
     """A snapshot of the machine.
 
     Attributes:
@@ -33,8 +33,10 @@ class FrameState:
 
 
 @runtime_checkable
-class TensileFrame(Protocol):
-    """A tensile test frame's controller as the appliance uses it."""
+class TestingMachine(Protocol):
+    """A tensile testing machine's controller as the appliance uses it."""
+
+    __test__ = False  # a protocol, not a pytest test class
 
     url: str
 
@@ -44,7 +46,7 @@ class TensileFrame(Protocol):
     def close(self) -> None:
         """Disconnect; safe to call twice."""
 
-    def read_state(self, timeout_s: float = 1.0) -> FrameState:
+    def read_state(self, timeout_s: float = 1.0) -> MachineState:
         """Current state. Raises HardwareTimeout or HardwareConnectError."""
 
     def start(self, speed_mm_min: float, timeout_s: float = 1.0) -> None:

@@ -8,7 +8,7 @@ import pytest
 from pymodbus.client.mixin import ModbusClientMixin
 
 from hal.errors import HardwareConfigError
-from hal.frame.register_map import (
+from hal.machine.register_map import (
     DATA_TYPES,
     ENTRIES,
     GENERIC_CONTROLLER,
@@ -18,7 +18,7 @@ from hal.frame.register_map import (
 )
 
 DT = ModbusClientMixin.DATATYPE
-WHERE = "run.toml: [frame.registers]"
+WHERE = "run.toml: [machine.registers]"
 
 
 def _encode(value, data_type, word_order="big"):
@@ -214,96 +214,96 @@ def _error(table) -> str:
     [
         (
             {"force_n": {"data_type": "float"}},
-            "run.toml: [frame.registers.force_n] data_type: must be one of "
+            "run.toml: [machine.registers.force_n] data_type: must be one of "
             f"{', '.join(DATA_TYPES)}, got 'float'",
         ),
         (
             {"force_n": {"table": "coil"}},
-            "run.toml: [frame.registers.force_n] data_type: a coil holds one bit: must be bool, "
+            "run.toml: [machine.registers.force_n] data_type: a coil holds one bit: must be bool, "
             "got 'float32'",
         ),
         (
             {"force_n": {"adress": 3}},
-            "run.toml: [frame.registers.force_n] adress: unknown key",
+            "run.toml: [machine.registers.force_n] adress: unknown key",
         ),
         (
             {"force_n": {"address": 70000}},
-            "run.toml: [frame.registers.force_n] address: must be an integer 0 ... 65535, "
+            "run.toml: [machine.registers.force_n] address: must be an integer 0 ... 65535, "
             "got 70000",
         ),
         (
             {"force_n": {"address": "4"}},
-            "run.toml: [frame.registers.force_n] address: must be an integer",
+            "run.toml: [machine.registers.force_n] address: must be an integer",
         ),
         (
             {"force_n": {"address": True}},
-            "run.toml: [frame.registers.force_n] address: must be an integer",
+            "run.toml: [machine.registers.force_n] address: must be an integer",
         ),
         (
             {"force_n": {"address": 65535}},
-            "run.toml: [frame.registers.force_n] address: a float32 at 65535 runs past",
+            "run.toml: [machine.registers.force_n] address: a float32 at 65535 runs past",
         ),
-        ({"force_n": {"scale": 0}}, "run.toml: [frame.registers.force_n] scale: must not be 0"),
+        ({"force_n": {"scale": 0}}, "run.toml: [machine.registers.force_n] scale: must not be 0"),
         (
             {"force_n": {"scale": "1"}},
-            "run.toml: [frame.registers.force_n] scale: must be a finite number",
+            "run.toml: [machine.registers.force_n] scale: must be a finite number",
         ),
         (
             {"force_n": {"word_order": "middle"}},
-            "run.toml: [frame.registers.force_n] word_order: must be one of big, little",
+            "run.toml: [machine.registers.force_n] word_order: must be one of big, little",
         ),
         (
             {"force_n": {"data_type": "bool"}},
-            "run.toml: [frame.registers.force_n] data_type: must be one of int16, uint16, int32, "
+            "run.toml: [machine.registers.force_n] data_type: must be one of int16, uint16, int32, "
             "uint32, float32 (a number), got 'bool'",
         ),
         (
             {"running": {"bit": 16}},
-            "run.toml: [frame.registers.running] bit: must be an integer 0 ... 15, got 16",
+            "run.toml: [machine.registers.running] bit: must be an integer 0 ... 15, got 16",
         ),
         (
             {"running": {"data_type": "uint16"}},
-            "run.toml: [frame.registers.running] data_type: must be 'bool', got 'uint16'",
+            "run.toml: [machine.registers.running] data_type: must be 'bool', got 'uint16'",
         ),
         (
             {"force_n": {"bit": 3}},
-            "run.toml: [frame.registers.force_n] bit: only for a bool in a holding or input",
+            "run.toml: [machine.registers.force_n] bit: only for a bool in a holding or input",
         ),
         (
             {"encoder_counts": {"data_type": "float32"}},
-            "run.toml: [frame.registers.encoder_counts] data_type: must be one of int16",
+            "run.toml: [machine.registers.encoder_counts] data_type: must be one of int16",
         ),
         (
             {"encoder_counts": {"address": 5}},
-            "run.toml: [frame.registers.encoder_counts] address: input 5..6 overlaps force_n "
+            "run.toml: [machine.registers.encoder_counts] address: input 5..6 overlaps force_n "
             "(input 4..5)",
         ),
         (
             {"speed_setpoint_mm_min": {"table": "input"}},
-            "run.toml: [frame.registers.speed_setpoint_mm_min] table: a set point is written",
+            "run.toml: [machine.registers.speed_setpoint_mm_min] table: a set point is written",
         ),
         (
             {"start": {"table": "discrete"}},
-            "run.toml: [frame.registers.start] table: a command is written",
+            "run.toml: [machine.registers.start] table: a command is written",
         ),
         (
             {"start": {"table": "holding", "data_type": "uint16", "address": 9}},
-            "run.toml: [frame.registers.start] value: missing",
+            "run.toml: [machine.registers.start] value: missing",
         ),
         (
             {"start": {"table": "holding", "data_type": "uint16", "address": 9, "value": -1}},
-            "run.toml: [frame.registers.start] value: must fit uint16 (0 ... 65535), got -1",
+            "run.toml: [machine.registers.start] value: must fit uint16 (0 ... 65535), got -1",
         ),
         (
             {"stop": {"address": 0}},
-            "run.toml: [frame.registers.stop] address: coil 0 overlaps start (coil 0)",
+            "run.toml: [machine.registers.stop] address: coil 0 overlaps start (coil 0)",
         ),
-        ({"force_n": {"value": 3}}, "run.toml: [frame.registers.force_n] value: only for"),
-        ({"force_n": False}, "run.toml: [frame.registers.force_n]: required, cannot be dropped"),
-        ({"force_n": 4}, "run.toml: [frame.registers.force_n]: must be a table"),
-        ({"forse_n": {}}, "run.toml: [frame.registers] forse_n: unknown entry"),
-        ({"max_gap": 500}, "run.toml: [frame.registers] max_gap: must be an integer 0 ... 120"),
-        ({"preset": "acme"}, "run.toml: [frame.registers] preset: must be one of generic, none"),
+        ({"force_n": {"value": 3}}, "run.toml: [machine.registers.force_n] value: only for"),
+        ({"force_n": False}, "run.toml: [machine.registers.force_n]: required, cannot be dropped"),
+        ({"force_n": 4}, "run.toml: [machine.registers.force_n]: must be a table"),
+        ({"forse_n": {}}, "run.toml: [machine.registers] forse_n: unknown entry"),
+        ({"max_gap": 500}, "run.toml: [machine.registers] max_gap: must be an integer 0 ... 120"),
+        ({"preset": "acme"}, "run.toml: [machine.registers] preset: must be one of generic, none"),
     ],
 )
 def test_bad_settings_are_named_in_one_line(override, expected):
@@ -312,11 +312,11 @@ def test_bad_settings_are_named_in_one_line(override, expected):
 
 def test_without_a_preset_entries_are_complete_and_required():
     assert _error({}) == (
-        "run.toml: [frame.registers.crosshead_mm]: missing "
+        "run.toml: [machine.registers.crosshead_mm]: missing "
         "(crosshead_mm, speed_mm_min and force_n are required)"
     )
     assert _error({"crosshead_mm": {"address": 0, "table": "input"}}).startswith(
-        "run.toml: [frame.registers.crosshead_mm] data_type: missing"
+        "run.toml: [machine.registers.crosshead_mm] data_type: missing"
     )
     parsed = RegisterMap.from_table(
         {

@@ -1,12 +1,12 @@
-"""Benchmark of the Modbus frame client: state reads per second and read latency.
+"""Benchmark of the Modbus machine client: state reads per second and read latency.
 
-`run_frame_benchmark(out, as_json, url=None, duration_s=5.0)` (the CLI's `extensometer bench
-frame`) reads the controller's state through `hal.frame.modbus.ModbusFrame` with the generic
+`run_machine_benchmark(out, as_json, url=None, duration_s=5.0)` (the CLI's `extensometer bench
+machine`) reads the controller's state through `hal.machine.modbus.ModbusMachine` with the generic
 register map (one request of 9 input registers per read) in two phases of `duration_s` each:
 
 * **as fast as possible**: one `read_state` right after the other; the rate is what one
   client thread gets, the latency each call's duration (perf_counter around `read_state`,
-  so it includes decoding and building the `FrameState`);
+  so it includes decoding and building the `MachineState`);
 * **paced at 100 Hz**: a read every 10 ms on a fixed schedule, as the appliance's poller
   reads (appliance/devices/polled_machine.py); reported with the achieved rate and how many periods
   started late (more than one period behind the schedule).
@@ -16,7 +16,7 @@ reported. Failures are counted by kind (a failed read is not in the latency figu
 
 Without `url` the program starts its own controller: a separate Python process (so the
 server does not share the client's interpreter lock) running a pymodbus TCP server on
-127.0.0.1 at a free port, serving the appliance's simulated machine (`SimMachine`, a steel
+127.0.0.1 at a free port, serving the appliance's simulated machine (`MachineWithSpecimen`, a steel
 S355 flat specimen pulled at 5 mm/min) through the generic map. Like a controller's scan
 cycle, a task on the server's loop refreshes the registers from the machine every 5 ms and
 requests are answered from them; a request that arrives during a refresh (about 0.6 ms of
@@ -95,21 +95,21 @@ def _phase(frame: Any, duration_s: float, rate_hz: float | None) -> dict[str, An
     return figures
 
 
-def measure_frame_client(url: str | None = None, duration_s: float = 5.0) -> dict[str, Any]:
+def measure_machine_client(url: str | None = None, duration_s: float = 5.0) -> dict[str, Any]:
     """Both phases against `url` (None: a simulated controller started here); the figures."""
-    from hal.frame.modbus import ModbusFrame
+    from hal.machine.modbus import ModbusMachine
 
     load = os.getloadavg()[0]
     server = None
     if url is None:
         port = free_loopback_port()
         server = start_peer(
-            "appliance.bench.frame_client", ["serve", str(port)], "the simulated controller"
+            "appliance.bench.machine_client", ["serve", str(port)], "the simulated controller"
         )
         target = f"modbus-tcp://127.0.0.1:{port}?unit=1"
     else:
         target = url
-    frame = ModbusFrame(target)
+    frame = ModbusMachine(target)
     try:
         frame.open(timeout_s=5.0)
         for _ in range(50):
@@ -123,12 +123,12 @@ def measure_frame_client(url: str | None = None, duration_s: float = 5.0) -> dic
             stop_peer(server, "the simulated controller", timeout_s=30.0)
     met = fast["rate_hz"] >= TARGET_RATE_HZ and paced["rate_hz"] >= 0.99 * PACED_RATE_HZ
     return {
-        "benchmark": "frame_client",
+        "benchmark": "machine_client",
         "target": f">= {TARGET_RATE_HZ:g} state reads/s over TCP on loopback, p99 reported",
         "verdict": "met" if met else "missed",
         "setup": {
             "url": target,
-            "controller": "simulated (own process, SimMachine, generic map)"
+            "controller": "simulated (own process, MachineWithSpecimen, generic map)"
             if url is None
             else "given",
             "register_map": "generic (one request: input 0..8)",
@@ -179,16 +179,16 @@ def format_table(figures: Mapping[str, Any]) -> str:
     )
 
 
-def run_frame_benchmark(
+def run_machine_benchmark(
     out: Path | None, as_json: bool, url: str | None = None, duration_s: float = 5.0
 ) -> int:
-    """Entry point of `extensometer bench frame`; prints the figures, writes `out` (JSON).
+    """Entry point of `extensometer bench machine`; prints the figures, writes `out` (JSON).
 
     Returns the exit status (0: measured, whether or not the target was met).
     """
     from appliance.bench.figures_output import emit_figures
 
-    figures = measure_frame_client(url, duration_s)
+    figures = measure_machine_client(url, duration_s)
     emit_figures(figures, format_table(figures), as_json=as_json, out=out)
     return 0
 
@@ -203,12 +203,12 @@ async def _serve_async(port: int) -> None:
     from pymodbus.simulator import DataType, SimData, SimDevice
 
     from appliance.sim.bar import BarModel
-    from appliance.sim.machine import SimMachine
+    from appliance.sim.machine import MachineWithSpecimen
     from appliance.sim.materials import ElasticPlastic
     from appliance.sim.specimen import Specimen
-    from hal.frame.register_map import GENERIC_CONTROLLER
+    from hal.machine.register_map import GENERIC_CONTROLLER
 
-    machine = SimMachine(BarModel(Specimen.iso6892_flat(), ElasticPlastic.steel_s355()))
+    machine = MachineWithSpecimen(BarModel(Specimen.iso6892_flat(), ElasticPlastic.steel_s355()))
     started = time.monotonic()
     machine.start(PULL_SPEED_MM_MIN, 0.0)
     image: dict[int, int | bool] = {}
@@ -270,5 +270,5 @@ if __name__ == "__main__":
         _serve(int(sys.argv[2]))
     else:
         sys.exit(
-            "usage: python -m appliance.bench.frame_client serve PORT (the benchmark's server)"
+            "usage: python -m appliance.bench.machine_client serve PORT (the benchmark's server)"
         )

@@ -1,6 +1,6 @@
-"""Simulated tensile frame: the `TensileFrame` protocol over a `MachineModel` and a `SimClock`.
+"""Simulated testing machine: the `TestingMachine` protocol over a `MachineModel` and a `SimClock`.
 
-URL: `sim://frame`. Constructed by the registry as `SimFrame(url, machine=..., clock=...)`.
+URL: `sim://machine`. Constructed by the registry as `SimMachine(url, machine=..., clock=...)`.
 The machine model (crosshead kinematics, specimen force) lives with the simulated world in the
 appliance; this backend only puts it behind the controller interface, reading the shared clock
 for every state and command.
@@ -15,14 +15,14 @@ from typing import Any, Protocol, runtime_checkable
 
 from hal.clock import SimClock
 from hal.errors import HardwareConfigError
-from hal.frame.base import FrameState
+from hal.machine.base import MachineState
 
 
 @runtime_checkable
 class MachineModel(Protocol):
     """The simulated machine: state as a function of simulation time, and commands."""
 
-    def state(self, t_s: float) -> FrameState:
+    def state(self, t_s: float) -> MachineState:
         """State at simulation time `t_s` (timestamp_ns set from `t_s`)."""
 
     def start(self, speed_mm_min: float, t_s: float) -> None:
@@ -35,8 +35,8 @@ class MachineModel(Protocol):
         """Drive back to the start position from time `t_s`."""
 
 
-class SimFrame:
-    """A tensile frame controller that answers from a simulated machine.
+class SimMachine:
+    """A testing machine controller that answers from a simulated machine.
 
     Args:
         url: the device URL (kept for messages).
@@ -67,7 +67,7 @@ class SimFrame:
     def close(self) -> None:
         self._open = False
 
-    def read_state(self, timeout_s: float = 1.0) -> FrameState:
+    def read_state(self, timeout_s: float = 1.0) -> MachineState:
         return self._machine.state(self._clock.now_s())
 
     def start(self, speed_mm_min: float, timeout_s: float = 1.0) -> None:

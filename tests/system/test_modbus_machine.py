@@ -1,4 +1,4 @@
-"""The Modbus frame client against real pymodbus servers on loopback (TCP) and a pty pair (RTU).
+"""The Modbus machine client against real pymodbus servers on loopback (TCP) and a pty pair (RTU).
 
 The simulated controller serves `TinyMachine` through the generic map; what the client reads
 is compared with the machine's state just before and just after the read (so no timing
@@ -23,11 +23,11 @@ from hal.errors import (
     HardwareFault,
     HardwareTimeout,
 )
-from hal.frame.base import FrameState, TensileFrame
-from hal.frame.modbus import MAX_BACKOFF_S, ModbusFrame, RtuLink, TcpLink, parse_url
-from hal.frame.register_map import GENERIC_CONTROLLER, RegisterMap
-from hal.registry import frame_from_url
-from tests.system.frame_controller_peers import (
+from hal.machine.base import MachineState, TestingMachine
+from hal.machine.modbus import MAX_BACKOFF_S, ModbusMachine, RtuLink, TcpLink, parse_url
+from hal.machine.register_map import GENERIC_CONTROLLER, RegisterMap
+from hal.registry import machine_from_url
+from tests.system.machine_controller_peers import (
     RECORDED_MAP,
     GarbageRtuPeer,
     RecordedController,
@@ -40,15 +40,15 @@ from tests.system.frame_controller_peers import (
 from tests.system.modbus_peers import free_tcp_port, needs_socat, pty_pair
 
 SLACK_S = 1.0
-"""What a call may take beyond its timeout on a loaded 2-core machine (an upper bound only)."""
+"""What a call may take beyond its timeout on a loaded 2-core host (an upper bound only)."""
 
 
 @pytest.fixture
-def frames() -> Iterator[list[ModbusFrame]]:
-    made: list[ModbusFrame] = []
+def clients() -> Iterator[list[ModbusMachine]]:
+    made: list[ModbusMachine] = []
     yield made
-    for frame in made:
-        frame.close()
+    for client in made:
+        client.close()
 
 
 @pytest.fixture
@@ -60,17 +60,17 @@ def served() -> Iterator[tuple[SimulatedController, ControllerServer, int]]:
         yield controller, server, port
 
 
-def _frame(frames: list[ModbusFrame], url: str, **kwargs) -> ModbusFrame:
-    frame = ModbusFrame(url, **kwargs)
-    frames.append(frame)
-    return frame
+def _client(clients: list[ModbusMachine], url: str, **kwargs) -> ModbusMachine:
+    client = ModbusMachine(url, **kwargs)
+    clients.append(client)
+    return client
 
 
-def _check_against_machine(frame: ModbusFrame, machine: TinyMachine) -> FrameState:
+def _check_against_machine(client: ModbusMachine, machine: TinyMachine) -> MachineState:
     before_ns = time.monotonic_ns()
-    state, before, after = bracketed(lambda: frame.read_state(timeout_s=2.0), machine)
+    state, before, after = bracketed(lambda: client.read_state(timeout_s=2.0), machine)
     after_ns = time.monotonic_ns()
-    assert isinstance(state, FrameState)
+    assert isinstance(state, MachineState)
     assert within(state.crosshead_mm, before["crosshead_mm"], after["crosshead_mm"])
     assert within(state.force_n, before["force_n"], after["force_n"])
     counts = sorted((before["encoder_counts"], after["encoder_counts"]))
@@ -101,7 +101,7 @@ def _check_against_machine(frame: ModbusFrame, machine: TinyMachine) -> FrameSta
 )
 def test_bad_url_pieces_are_named(url, piece):
     with pytest.raises(HardwareConfigError) as raised:
-        ModbusFrame(url)
+        ModbusMachine(url)
     message = str(raised.value)
     assert "\n" not in message
     assert repr(url) in message
@@ -114,60 +114,60 @@ def test_good_urls_and_the_registry():
     assert parse_url("modbus-rtu:///dev/ttyUSB0?baud=115200&parity=E&stop_bits=2&unit=7") == (
         RtuLink("/dev/ttyUSB0", 115200, "E", 2, 7)
     )
-    frame = frame_from_url(
+    client = machine_from_url(
         "modbus-tcp://127.0.0.1:5020", machine=object(), clock=object(), accepts_commands=True
     )
-    assert isinstance(frame, ModbusFrame) and isinstance(frame, TensileFrame)
-    assert frame.register_map is GENERIC_CONTROLLER and frame.accepts_commands
+    assert isinstance(client, ModbusMachine) and isinstance(client, TestingMachine)
+    assert client.register_map is GENERIC_CONTROLLER and client.accepts_commands
     with pytest.raises(HardwareConnectError, match="not open"):
-        frame.read_state(timeout_s=0.5)
+        client.read_state(timeout_s=0.5)
     with pytest.raises(HardwareConfigError, match="timeout_s"):
-        frame.read_state(timeout_s=0)
+        client.read_state(timeout_s=0)
 
 
-def test_tcp_reads_the_simulated_frame_in_one_request(served, frames):
+def test_tcp_reads_the_simulated_machine_in_one_request(served, clients):
     controller, server, port = served
-    frame = _frame(frames, f"modbus-tcp://127.0.0.1:{port}?unit=1")
-    frame.open(timeout_s=5.0)
-    stopped = _check_against_machine(frame, controller.machine)
+    client = _client(clients, f"modbus-tcp://127.0.0.1:{port}?unit=1")
+    client.open(timeout_s=5.0)
+    stopped = _check_against_machine(client, controller.machine)
     assert stopped.running is False and stopped.speed_mm_min == 0.0
     assert stopped.crosshead_mm == pytest.approx(10.0)
     controller.machine.start(30.0)
     requests_before = server.requests
     for _ in range(20):
-        state = _check_against_machine(frame, controller.machine)
+        state = _check_against_machine(client, controller.machine)
         assert state.running is True and state.speed_mm_min == 30.0
     assert server.requests - requests_before == 20
     controller.machine.return_to_start(45.0)
-    back = _check_against_machine(frame, controller.machine)
+    back = _check_against_machine(client, controller.machine)
     assert back.speed_mm_min == -45.0 and back.running
-    statistics = frame.statistics()
+    statistics = client.statistics()
     assert statistics["reads"] == 22 and statistics["connected"] is True
     assert statistics["exceptions"] == statistics["transport_failures"] == 0
     assert statistics["last_latency_ms"] > 0
 
 
 @needs_socat
-def test_rtu_over_a_pty_pair_reads_and_commands(tmp_path, frames):
+def test_rtu_over_a_pty_pair_reads_and_commands(tmp_path, clients):
     controller = SimulatedController()
     with pty_pair(tmp_path) as (server_end, client_end), ControllerServer(controller) as server:
         server.serve_rtu(server_end, baud=115200)
         url = f"modbus-rtu://{client_end}?baud=115200&parity=N&stop_bits=1&unit=1"
-        frame = _frame(frames, url, accepts_commands=True)
-        frame.open(timeout_s=5.0)
-        frame.start(12.5, timeout_s=2.0)
+        client = _client(clients, url, accepts_commands=True)
+        client.open(timeout_s=5.0)
+        client.start(12.5, timeout_s=2.0)
         assert controller.commands() == [("speed_setpoint_mm_min", 12.5), ("start", True)]
         for _ in range(5):
-            state = _check_against_machine(frame, controller.machine)
+            state = _check_against_machine(client, controller.machine)
             assert state.running and state.speed_mm_min == 12.5
-        frame.close()
+        client.close()
 
 
-def _recorded_frame(frames: list[ModbusFrame], port: int) -> ModbusFrame:
+def _recorded_client(clients: list[ModbusMachine], port: int) -> ModbusMachine:
     with RECORDED_MAP.open("rb") as file:
         table = tomllib.load(file)["registers"]
     register_map = RegisterMap.from_table(table, f"{RECORDED_MAP.name}: [registers]")
-    return _frame(frames, f"modbus-tcp://127.0.0.1:{port}", register_map=register_map)
+    return _client(clients, f"modbus-tcp://127.0.0.1:{port}", register_map=register_map)
 
 
 def _expected(row: dict[tuple[str, int], int]) -> dict[str, float | int | bool]:
@@ -185,19 +185,19 @@ def _expected(row: dict[tuple[str, int], int]) -> dict[str, float | int | bool]:
     }
 
 
-def test_recorded_table_is_served_and_decoded_exactly(frames):
+def test_recorded_table_is_served_and_decoded_exactly(clients):
     recorded = RecordedController()
     assert len(recorded.rows) >= 40
     port = free_tcp_port()
     with ControllerServer(recorded) as server:
         server.serve_tcp(port)
-        frame = _recorded_frame(frames, port)
-        frame.open(timeout_s=5.0)
-        assert len(frame.read_plan) == 2
+        client = _recorded_client(clients, port)
+        client.open(timeout_s=5.0)
+        assert len(client.read_plan) == 2
         speeds = set()
         for index, row in enumerate(recorded.rows):
             recorded.hold(index)
-            state = frame.read_state(timeout_s=2.0)
+            state = client.read_state(timeout_s=2.0)
             expected = _expected(row)
             got = {name: getattr(state, name) for name in expected}
             assert got == expected, f"row {index}"
@@ -208,185 +208,185 @@ def test_recorded_table_is_served_and_decoded_exactly(frames):
         recorded.play()
         decoded = [_expected(row) for row in recorded.rows]
         for _ in range(5):
-            state = frame.read_state(timeout_s=2.0)
+            state = client.read_state(timeout_s=2.0)
             assert {name: getattr(state, name) for name in decoded[0]} in decoded
         with pytest.raises(HardwareConfigError, match="start"):
-            frame.start(5.0)
+            client.start(5.0)
         assert recorded.writes == 0
 
 
-def test_commands_are_refused_unless_configured(served, frames):
+def test_commands_are_refused_unless_configured(served, clients):
     controller, _, port = served
     url = f"modbus-tcp://127.0.0.1:{port}"
-    frame = _frame(frames, url)
-    frame.open(timeout_s=5.0)
+    client = _client(clients, url)
+    client.open(timeout_s=5.0)
     for name, call in (
-        ("start", lambda: frame.start(10.0)),
-        ("stop", frame.stop),
-        ("return_to_start", lambda: frame.return_to_start(10.0)),
+        ("start", lambda: client.start(10.0)),
+        ("stop", client.stop),
+        ("return_to_start", lambda: client.return_to_start(10.0)),
     ):
         with pytest.raises(HardwareConfigError) as raised:
             call()
         assert f"command {name} refused" in str(raised.value) and url in str(raised.value)
     assert controller.commands() == []
-    assert frame.statistics()["commands"] == 0
+    assert client.statistics()["commands"] == 0
 
 
-def test_commands_are_written_set_point_first_when_configured(served, frames):
+def test_commands_are_written_set_point_first_when_configured(served, clients):
     controller, _, port = served
-    frame = _frame(frames, f"modbus-tcp://127.0.0.1:{port}", accepts_commands=True)
-    frame.open(timeout_s=5.0)
-    frame.start(30.0, timeout_s=2.0)
+    client = _client(clients, f"modbus-tcp://127.0.0.1:{port}", accepts_commands=True)
+    client.open(timeout_s=5.0)
+    client.start(30.0, timeout_s=2.0)
     assert controller.commands() == [("speed_setpoint_mm_min", 30.0), ("start", True)]
-    moving = _check_against_machine(frame, controller.machine)
+    moving = _check_against_machine(client, controller.machine)
     assert moving.running and moving.speed_mm_min == 30.0
-    frame.stop(timeout_s=2.0)
+    client.stop(timeout_s=2.0)
     assert controller.commands()[-1] == ("stop", True)
-    stopped = _check_against_machine(frame, controller.machine)
+    stopped = _check_against_machine(client, controller.machine)
     assert not stopped.running and stopped.speed_mm_min == 0.0
-    frame.return_to_start(60.0, timeout_s=2.0)
+    client.return_to_start(60.0, timeout_s=2.0)
     assert controller.commands()[-2:] == [
         ("speed_setpoint_mm_min", 60.0),
         ("return_to_start", True),
     ]
-    returning = _check_against_machine(frame, controller.machine)
+    returning = _check_against_machine(client, controller.machine)
     assert returning.running and returning.speed_mm_min == -60.0
-    assert frame.statistics()["commands"] == 3
+    assert client.statistics()["commands"] == 3
 
 
-def test_command_words_and_a_command_missing_from_the_map(frames):
+def test_command_words_and_a_command_missing_from_the_map(clients):
     table = {
         "preset": "generic",
         "start": {"address": 10, "table": "holding", "data_type": "uint16", "value": 1},
         "stop": {"address": 10, "table": "holding", "data_type": "uint16", "value": 2},
         "return_to_start": False,
     }
-    register_map = RegisterMap.from_table(table, "test: [frame.registers]")
+    register_map = RegisterMap.from_table(table, "test: [machine.registers]")
     controller = SimulatedController(register_map)
     port = free_tcp_port()
     with ControllerServer(controller) as server:
         server.serve_tcp(port)
         url = f"modbus-tcp://127.0.0.1:{port}"
-        frame = _frame(frames, url, register_map=register_map, accepts_commands=True)
-        frame.open(timeout_s=5.0)
-        frame.start(20.0)
-        frame.stop()
+        client = _client(clients, url, register_map=register_map, accepts_commands=True)
+        client.open(timeout_s=5.0)
+        client.start(20.0)
+        client.stop()
         assert controller.commands() == [
             ("speed_setpoint_mm_min", 20.0),
             ("start", 1),
             ("stop", 2),
         ]
         with pytest.raises(HardwareConfigError, match="no return_to_start entry") as raised:
-            frame.return_to_start(20.0)
+            client.return_to_start(20.0)
         assert url in str(raised.value)
         with pytest.raises(HardwareConfigError, match="cannot hold"):
-            frame.start(float("nan"))
+            client.start(float("nan"))
         assert len(controller.commands()) == 3
 
 
-def test_an_exception_response_is_a_fault_not_a_connection_failure(served, frames):
+def test_an_exception_response_is_a_fault_not_a_connection_failure(served, clients):
     _, _, port = served
     beyond = RegisterMap.from_table(
-        {"preset": "generic", "force_n": {"address": 200}}, "test: [frame.registers]"
+        {"preset": "generic", "force_n": {"address": 200}}, "test: [machine.registers]"
     )
     url = f"modbus-tcp://127.0.0.1:{port}"
-    frame = _frame(frames, url, register_map=beyond)
+    client = _client(clients, url, register_map=beyond)
     with pytest.raises(HardwareFault) as at_open:
-        frame.open(timeout_s=5.0)
+        client.open(timeout_s=5.0)
     assert not isinstance(at_open.value, HardwareConnectError | HardwareTimeout)
     assert str(at_open.value) == (
         f"{url}: reading force_n (input 200..201): exception 2 (illegal data address)"
     )
     for _ in range(3):
         with pytest.raises(HardwareFault, match="exception 2"):
-            frame.read_state(timeout_s=2.0)
-    statistics = frame.statistics()
+            client.read_state(timeout_s=2.0)
+    statistics = client.statistics()
     assert statistics["exceptions"] == 4 and statistics["transport_failures"] == 0
     assert statistics["connected"] is True and statistics["refused_while_disconnected"] == 0
 
 
-def test_a_lost_controller_is_reported_at_once_and_reconnected_after_backoff(served, frames):
+def test_a_lost_controller_is_reported_at_once_and_reconnected_after_backoff(served, clients):
     controller, server, port = served
-    frame = _frame(frames, f"modbus-tcp://127.0.0.1:{port}")
-    frame.open(timeout_s=5.0)
-    frame.read_state(timeout_s=2.0)
+    client = _client(clients, f"modbus-tcp://127.0.0.1:{port}")
+    client.open(timeout_s=5.0)
+    client.read_state(timeout_s=2.0)
     server.stop()
     started = time.monotonic()
     with pytest.raises(HardwareConnectError, match="connection lost"):
-        frame.read_state(timeout_s=2.0)
+        client.read_state(timeout_s=2.0)
     assert time.monotonic() - started < 2.0 + SLACK_S
     started = time.monotonic()
     with pytest.raises(HardwareConnectError, match="next attempt in"):
-        frame.read_state(timeout_s=2.0)
+        client.read_state(timeout_s=2.0)
     assert time.monotonic() - started < SLACK_S
     time.sleep(0.15)
     with pytest.raises(HardwareConnectError, match="connection refused"):
-        frame.read_state(timeout_s=2.0)
-    assert frame.statistics()["backoff_s"] == pytest.approx(0.4)
+        client.read_state(timeout_s=2.0)
+    assert client.statistics()["backoff_s"] == pytest.approx(0.4)
     server.serve_tcp(port)
     deadline = time.monotonic() + 10 * MAX_BACKOFF_S
     state = None
     while state is None and time.monotonic() < deadline:
         try:
-            state = frame.read_state(timeout_s=2.0)
+            state = client.read_state(timeout_s=2.0)
         except HardwareConnectError:
             time.sleep(0.02)
     assert state is not None
-    _check_against_machine(frame, controller.machine)
-    statistics = frame.statistics()
+    _check_against_machine(client, controller.machine)
+    statistics = client.statistics()
     assert statistics["reconnects"] == 1 and statistics["connected"] is True
     assert statistics["transport_failures"] >= 2 and statistics["refused_while_disconnected"] >= 1
     assert statistics["backoff_s"] == pytest.approx(0.1)
 
 
-def test_a_silent_controller_times_out_within_the_timeout(frames):
+def test_a_silent_controller_times_out_within_the_timeout(clients):
     port = free_tcp_port()
     with SilentTcpPeer(port):
-        frame = _frame(frames, f"modbus-tcp://127.0.0.1:{port}")
+        client = _client(clients, f"modbus-tcp://127.0.0.1:{port}")
         started = time.monotonic()
         with pytest.raises(HardwareConnectError, match="no valid reply"):
-            frame.open(timeout_s=0.3)
+            client.open(timeout_s=0.3)
         assert time.monotonic() - started < 0.3 + SLACK_S
         time.sleep(0.12)
         started = time.monotonic()
         with pytest.raises(HardwareTimeout, match="no valid reply"):
-            frame.read_state(timeout_s=0.3)
+            client.read_state(timeout_s=0.3)
         assert time.monotonic() - started < 0.3 + SLACK_S
-        statistics = frame.statistics()
+        statistics = client.statistics()
         assert statistics["timeouts"] == 2 and statistics["exceptions"] == 0
 
 
 @needs_socat
-def test_garbage_on_the_rtu_line_is_a_timeout(tmp_path, frames):
+def test_garbage_on_the_rtu_line_is_a_timeout(tmp_path, clients):
     with pty_pair(tmp_path) as (server_end, client_end), GarbageRtuPeer(server_end) as peer:
-        frame = _frame(frames, f"modbus-rtu://{client_end}?baud=115200")
+        client = _client(clients, f"modbus-rtu://{client_end}?baud=115200")
         started = time.monotonic()
         with pytest.raises(HardwareConnectError, match="no valid reply"):
-            frame.open(timeout_s=0.3)
+            client.open(timeout_s=0.3)
         assert time.monotonic() - started < 0.3 + SLACK_S
         time.sleep(0.12)
         started = time.monotonic()
         with pytest.raises(HardwareTimeout):
-            frame.read_state(timeout_s=0.3)
+            client.read_state(timeout_s=0.3)
         assert time.monotonic() - started < 0.3 + SLACK_S
         assert peer.answers >= 2
-        frame.close()
+        client.close()
 
 
-def test_a_missing_serial_device_is_a_connect_error(tmp_path, frames):
+def test_a_missing_serial_device_is_a_connect_error(tmp_path, clients):
     missing = tmp_path / "ttyNone"
-    frame = _frame(frames, f"modbus-rtu://{missing}")
+    client = _client(clients, f"modbus-rtu://{missing}")
     with pytest.raises(HardwareConnectError, match="cannot connect to .*ttyNone"):
-        frame.open(timeout_s=1.0)
+        client.open(timeout_s=1.0)
     with pytest.raises(HardwareConnectError, match="next attempt in"):
-        frame.read_state(timeout_s=1.0)
+        client.read_state(timeout_s=1.0)
 
 
 def test_the_benchmark_runs_and_writes_its_report(tmp_path, capsys):
-    from appliance.bench.frame_client import run_frame_benchmark
+    from appliance.bench.machine_client import run_machine_benchmark
 
-    out = tmp_path / "frame.json"
-    assert run_frame_benchmark(out, True, duration_s=0.3) == 0
+    out = tmp_path / "client.json"
+    assert run_machine_benchmark(out, True, duration_s=0.3) == 0
     figures = json.loads(out.read_text(encoding="utf-8"))
     assert json.loads(capsys.readouterr().out) == figures
     for phase in ("as_fast_as_possible", "paced"):
