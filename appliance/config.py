@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 from appliance.errors import InputError, read_user_text
 from appliance.measure.tracking import TrackerSettings
+from hal.camera.base import Region
 from hal.errors import HardwareConfigError
 
 if TYPE_CHECKING:
@@ -65,6 +66,17 @@ class CameraConfig:
     blur_budget_px: float = field(default=1.0, metadata=_range(0.0, 100.0))
     min_exposure_us: float = field(default=100.0, metadata=_range(1.0, 1e7))
     max_exposure_us: float = field(default=20000.0, metadata=_range(1.0, 1e7))
+
+    def region(self) -> Region | None:
+        """The sensor region of `region_*_px`; None = the full sensor."""
+        if self.region_width_px is None or self.region_height_px is None:
+            return None
+        return Region(
+            self.region_x_px or 0,
+            self.region_y_px or 0,
+            self.region_width_px,
+            self.region_height_px,
+        )
 
 
 @dataclass(frozen=True)

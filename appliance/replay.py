@@ -34,7 +34,7 @@ import numpy as np
 
 from appliance.config import config_from_table, merge_tables, read_config_table
 from appliance.errors import InputError
-from appliance.measure.frame_measurer import FrameMeasurer, StrainSample
+from appliance.measure.frame_measurer import FrameMeasurer, StrainSample, tracker_and_gauges
 from appliance.measure.frame_windows import paste_windows, uncovered
 from appliance.measure.gauges import Calibration, Gauge, StrainGaugesLayout
 from appliance.recording.format import (
@@ -56,8 +56,7 @@ from appliance.recording.reader import (
 from appliance.run.loop import LoopResult
 from appliance.run.outputs import RunFacts, RunOutput
 from appliance.run.state import ExitStatus
-from appliance.run.summary import RunSummary, SampleRecord
-from appliance.runner import RunOutcome, build_measurement
+from appliance.run.summary import RunOutcome, RunSummary, SampleRecord
 from hal.camera.base import Frame
 
 
@@ -104,7 +103,9 @@ def _setup(reader: RecordingReader, override: Path | None) -> _Setup:
     if points.ndim != 2 or points.shape[1] != 2:
         raise InputError(f"{reader.path}: the recorded points are not an (n, 2) array")
     try:
-        tracker, gauges = build_measurement(config, reference_image, points, layout, calibration)
+        tracker, gauges = tracker_and_gauges(
+            config.tracking, reference_image, points, layout, calibration
+        )
     except ValueError as exc:
         raise InputError(f"{reader.path}: the recorded marks cannot be tracked ({exc})") from None
     facts = RunFacts(

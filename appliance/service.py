@@ -42,9 +42,10 @@ from appliance.config import Config
 from appliance.errors import InputError
 from appliance.live.link import LiveLink
 from appliance.live.sd_notify import ServiceNotifier
-from appliance.run.outputs import RunOutput
+from appliance.live.viewer import RerunViewer
+from appliance.rig import check_devices
 from appliance.run.state import RunState, Transition
-from appliance.runner import check_devices, run_test
+from appliance.runner import run_test
 from hal.errors import HardwareError
 
 IDLE_TICK_S = 0.1
@@ -81,7 +82,7 @@ class Service:
         *,
         record_path: Path | None,
         notifier: ServiceNotifier,
-        viewer: RunOutput | None = None,
+        viewer: RerunViewer | None = None,
         log: TextIO = sys.stderr,
         now: Callable[[], datetime.datetime] = lambda: datetime.datetime.now(datetime.UTC),
     ) -> None:
@@ -236,7 +237,7 @@ class Service:
                 simulate=config.camera.url.startswith("sim://"),
                 record_path=record,
                 test_id=self._test_id,
-                **self.link.run_arguments(),
+                hooks=self.link.hooks(),
             )
         except (InputError, HardwareError) as error:
             self.log(f"{self._test_id}: not started: {error}")

@@ -393,7 +393,7 @@ def _run_config(args: argparse.Namespace):
 
 def _run(args: argparse.Namespace) -> int:
     from appliance.live.link import LiveLink
-    from appliance.runner import print_summary, run_test
+    from appliance.runner import run_test
     from hal.errors import HardwareError
 
     config = _run_config(args)
@@ -407,7 +407,7 @@ def _run(args: argparse.Namespace) -> int:
             out_dir=args.out,
             progress=progress,
             record_path=args.record,
-            **link.run_arguments(),
+            hooks=link.hooks(),
         )
     except HardwareError as error:
         raise InputError(f"run: {error}") from None
@@ -438,7 +438,6 @@ def _serve(args: argparse.Namespace) -> int:
 def _replay(args: argparse.Namespace) -> int:
     from appliance.config import Config
     from appliance.replay import is_exact, replay_recording
-    from appliance.runner import print_summary
 
     progress = None if args.json or not sys.stderr.isatty() else sys.stderr
     viewer = _viewer(_with_live_options(Config(), args))
@@ -468,6 +467,14 @@ def _replay(args: argparse.Namespace) -> int:
         )
         return 1
     return 0
+
+
+def print_summary(outcome, stream=sys.stdout) -> None:
+    """The summary as aligned human-readable lines."""
+    for key, value in outcome.as_dict().items():
+        if isinstance(value, float):
+            value = f"{value:.6g}"
+        stream.write(f"{key:38s} {value}\n")
 
 
 def _info(args: argparse.Namespace) -> int:

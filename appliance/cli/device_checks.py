@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from appliance.config import Config, register_map_of
-from appliance.runner import camera_region, configured_optics
+from appliance.plan.optics import configured_optics
 from hal.camera.base import Camera, CameraSettings, PixelFormat, TriggerInfo, TriggerMode
 from hal.errors import HardwareTimeout
 from hal.machine.base import MachineState, TestingMachine
@@ -103,7 +103,7 @@ def check_camera(
     settings = CameraSettings(
         exposure_us=exposure,
         gain_db=c.gain_db,
-        region=camera_region(config),
+        region=config.camera.region(),
         pixel_format=PixelFormat(c.pixel_format),
     )
     arrivals: list[float] = []
@@ -138,8 +138,7 @@ def check_camera(
                 last_image = image
         finally:
             camera.disarm()
-        statistics = getattr(camera, "statistics", None)
-        stats = statistics() if callable(statistics) else None
+        stats = camera.statistics()
     finally:
         camera.close()
     arrival = np.asarray(arrivals)
@@ -170,7 +169,7 @@ def check_camera(
         "mean_grey": grey_sum / len(ids),
         "saturated_fraction": saturated / pixels,
     }
-    if stats is not None:
+    if stats:
         report["statistics"] = stats
     return report
 
@@ -205,8 +204,7 @@ def check_machine(
             state = machine.read_state(timeout_s)
             latencies.append((time.perf_counter() - before) * 1e3)
         elapsed = time.perf_counter() - started
-        statistics = getattr(machine, "statistics", None)
-        stats = statistics() if callable(statistics) else None
+        stats = machine.statistics()
     finally:
         machine.close()
     assert state is not None
@@ -217,7 +215,7 @@ def check_machine(
         "rate_hz": reads / elapsed if elapsed > 0 else None,
         "latency_ms": _percentiles(np.asarray(latencies)),
     }
-    if stats is not None:
+    if stats:
         report["statistics"] = stats
     return report
 

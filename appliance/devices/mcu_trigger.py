@@ -18,6 +18,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
+from appliance.errors import InputError
 from appliance.plan.trigger_plan import TriggerPlan
 from firmware_bridge.link import FirmwareError, McuLink, TriggerEvent
 from firmware_bridge.messages import TriggerSource
@@ -76,6 +77,14 @@ class McuTriggerLine:
         """Disarm the firmware (errors of a link already gone are left to the caller)."""
         self.link.disarm()
 
+    def release(self) -> None:
+        """Disarm the firmware if the link still answers, and close the link."""
+        try:
+            self.stop()
+        except FirmwareError:
+            pass
+        self.link.close()
+
     def next_edge_s(self, after_s: float) -> float | None:
         """Simulation time of the next TRIGGER after `after_s`; None when none comes within
         `wait_s`. Raises RuntimeError without a simulation clock."""
@@ -96,3 +105,29 @@ class McuTriggerLine:
             edge = self.sim_s_of_host_ns(event.host_time_ns)
             if edge > after_s:
                 return edge
+
+
+def connect_trigger_line(
+    url: str, sim_s_of_host_ns: Callable[[int], float] | None = None
+) -> McuTriggerLine:
+    """Connect to the trigger microcontroller at `url` (`[trigger] url`) and shake hands.
+
+    Args:
+        url: serial device or pyserial URL.
+        sim_s_of_host_ns: as `McuTriggerLine`'s: the simulation clock of a simulated camera
+            the line drives; None for a real camera on its output.
+
+    Raises:
+        InputError: naming `[trigger] url` when the link cannot be opened or the firmware
+            does not speak this host's protocol.
+    """
+    try:
+        link = McuLink(url)
+        try:
+            link.connect()
+        except BaseException:
+            link.close()
+            raise
+    except FirmwareError as exc:
+        raise InputError(f"[trigger] url: {url}: {exc}") from None
+    return McuTriggerLine(link, sim_s_of_host_ns)

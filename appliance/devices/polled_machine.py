@@ -19,6 +19,7 @@ import collections
 import threading
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -111,7 +112,11 @@ class PolledMachine:
         with self._lock:
             self.machine.return_to_start(speed_mm_min, timeout_s)
 
-    def statistics(self) -> PollStatistics:
+    def statistics(self) -> dict[str, Any]:
+        """The polled controller's own counters."""
+        return self.machine.statistics()
+
+    def poll_statistics(self) -> PollStatistics:
         """What the poller has read so far."""
         latencies = np.asarray(self._latencies_ms, dtype=np.float64)
         if latencies.size == 0:

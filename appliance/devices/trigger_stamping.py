@@ -169,8 +169,7 @@ class TriggerStampedCamera:
 
     def statistics(self) -> dict[str, Any]:
         """The camera's statistics and the matching counters."""
-        statistics = getattr(self.camera, "statistics", None)
-        own = dict(statistics()) if callable(statistics) else {}
+        own = dict(self.camera.statistics())
         return {
             **own,
             "frames_matched_to_triggers": self.matched,

@@ -13,7 +13,7 @@ outside, for `extensometer run` (one test) and `extensometer serve` (one test af
   alive; a hung one stops the pings);
 * device events (`appliance.run.loop.DeviceEvent`): a camera outage clears data-valid.
 
-`run_arguments()` gives the keyword arguments of `run_test` that connect a test.
+`hooks()` gives the `RunHooks` that connect a test run by `run_test` to the link.
 """
 
 from __future__ import annotations
@@ -26,9 +26,10 @@ from typing import Any
 from appliance.config import Config
 from appliance.live.modbus_server import StrainRegisterServer
 from appliance.live.sd_notify import ServiceNotifier
+from appliance.live.viewer import RerunViewer
 from appliance.measure.frame_measurer import StrainSample
 from appliance.run.loop import DeviceEvent, LoopResult, MeasurementLoop
-from appliance.run.outputs import RunFacts, RunOutput
+from appliance.run.outputs import RunFacts, RunHooks, RunOutput
 from appliance.run.state import RunState, Transition
 
 
@@ -49,7 +50,7 @@ class LiveLink:
         config: Config,
         *,
         notifier: ServiceNotifier | None = None,
-        viewer: RunOutput | None = None,
+        viewer: RerunViewer | None = None,
         on_start: Callable[[], bool] | None = None,
         on_gauge_length: Callable[[float], bool] | None = None,
         on_transition: Callable[[Transition], None] | None = None,
@@ -72,16 +73,14 @@ class LiveLink:
     def start(self) -> None:
         """Start the servers (Modbus, the viewer's). Raises InputError naming the key."""
         self.modbus.start()
-        start = getattr(self.viewer, "start", None)
-        if callable(start):
-            start()
+        if self.viewer is not None:
+            self.viewer.start()
 
     def close(self) -> None:
         """Stop the servers; idempotent."""
         self.modbus.close()
-        close = getattr(self.viewer, "close", None)
-        if callable(close):
-            close()
+        if self.viewer is not None:
+            self.viewer.close()
 
     def request_stop(self, reason: str) -> bool:
         """Stop the running test, if any; whether one was running."""
@@ -92,18 +91,18 @@ class LiveLink:
         loop.request_stop(reason)
         return True
 
-    def run_arguments(self) -> dict[str, Any]:
-        """Keyword arguments of `run_test` connecting a test to the link."""
+    def hooks(self) -> RunHooks:
+        """The hooks of `run_test` connecting a test to the link."""
         outputs: list[RunOutput] = [_FactsTap(self)]
         if self.viewer is not None:
             outputs.append(self.viewer)
-        return {
-            "outputs": outputs,
-            "immediate_sinks": [self._on_sample],
-            "on_transition": self._transition,
-            "on_loop": self._attach,
-            "device_listeners": [self._on_device_event],
-        }
+        return RunHooks(
+            outputs=outputs,
+            immediate_sinks=[self._on_sample],
+            on_transition=self._transition,
+            on_loop=self._attach,
+            device_listeners=[self._on_device_event],
+        )
 
     def _attach(self, loop: MeasurementLoop) -> None:
         with self._lock:
@@ -169,3 +168,6 @@ class _FactsTap:
 
     def end(self, result: LoopResult) -> None:
         self._link._detach()
+
+    def stats(self) -> dict[str, Any]:
+        return {}

@@ -101,6 +101,7 @@ import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -412,6 +413,10 @@ class RerunViewer:
     def problem(self) -> str | None:
         """The first problem of the test (running or last), one line; None while all is well."""
         return self._test.problem if self._test is not None else None
+
+    def stats(self) -> dict[str, Any]:
+        """{}: the viewer's counts are shown in the viewer, not added to the summary."""
+        return {}
 
 
 class _TestStream:

@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 
 from appliance.measure.frame_windows import ImageWindow, cut_windows
-from appliance.measure.gauges import StrainGauges, StrainReading
-from appliance.measure.tracking import MarkTracker, TrackStatus
+from appliance.measure.gauges import Calibration, StrainGauges, StrainGaugesLayout, StrainReading
+from appliance.measure.tracking import MarkTracker, TrackerSettings, TrackStatus
 from hal.camera.base import Frame
 from hal.machine.base import MachineState
 
@@ -246,3 +246,18 @@ class FrameMeasurer:
         if criteria.max_frames is not None and self.samples >= criteria.max_frames:
             return Ending(False, f"frame limit {criteria.max_frames} reached")
         return None
+
+
+def tracker_and_gauges(
+    settings: TrackerSettings,
+    reference: np.ndarray,
+    points: np.ndarray,
+    layout: StrainGaugesLayout,
+    calibration: Calibration,
+) -> tuple[MarkTracker, StrainGauges]:
+    """The tracker and the gauges of a test, on its reference image and placed points: what a
+    `FrameMeasurer` measures with, live and in a replay."""
+    image = np.asarray(reference, dtype=np.float64)
+    tracker = MarkTracker(image, points, layout.marks, settings)
+    gauges = StrainGauges(layout.axial, points, calibration, layout.transverse)
+    return tracker, gauges

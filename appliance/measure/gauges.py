@@ -178,6 +178,14 @@ class StrainGaugesLayout:
     axial: Gauge
     transverse: Gauge | None
 
+    @property
+    def marks(self) -> tuple[tuple[int, ...], ...]:
+        """The tracker's marks: the axial marks, then the transverse ones."""
+        marks = [self.axial.first, self.axial.second]
+        if self.transverse is not None:
+            marks += [self.transverse.first, self.transverse.second]
+        return tuple(tuple(m) for m in marks)
+
 
 def place_marks(
     centre_px: tuple[float, float],
@@ -237,3 +245,23 @@ def place_marks(
         points += [centre - w * across, centre + w * across]
         transverse = Gauge((start,), (start + 1,))
     return np.array(points), StrainGaugesLayout(Gauge(first, second), transverse)
+
+
+def marks_outside(points: np.ndarray, shape: tuple[int, ...], subset_px: int) -> str | None:
+    """Why marks at `points` cannot be tracked in an image of `shape` with subsets of at least
+    `subset_px` (a gauge too long for the field of view, or a centre off the image), as one
+    line; None when every point has room for its subset."""
+    height, width = shape[:2]
+    half = subset_px // 2
+    x, y = points[:, 0], points[:, 1]
+    if (
+        x.min() >= half
+        and y.min() >= half
+        and x.max() <= width - 1 - half
+        and y.max() <= height - 1 - half
+    ):
+        return None
+    return (
+        f"the marks span x {x.min():.0f}..{x.max():.0f}, y {y.min():.0f}..{y.max():.0f} px, "
+        f"outside the {width}x{height} image less half the smallest subset ({half} px)"
+    )

@@ -25,12 +25,15 @@ The blur length in px is what `Correlator(reference_blur=(blur_px, angle))` and
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
 import numpy as np
 
+from appliance.config import Config
+from appliance.errors import InputError
 from appliance.plan.optics import Optics
 
 DEFAULT_MAX_PERIOD_S = 1.0
@@ -257,4 +260,45 @@ def plan_exposure(
         period_covers_exposure=motion.px <= capture_range_px,
         exposure_limit=exposure_limit,
         period_limit=period_limit,
+    )
+
+
+def exposure_for(config: Config, optics: Optics, speed_mm_min: float) -> ExposurePlan:
+    """The exposure plan of a test at a crosshead speed: the planner's for the configuration's
+    blur budget, exposure bounds and search radius, with `[camera] exposure_us` and
+    `frame_rate_hz` taking precedence where given, and the frame rate no lower than
+    `min_frame_rate_hz` unless the exposure does not allow it.
+
+    Raises:
+        InputError: an exposure longer than the frame period (names the key).
+    """
+    camera = config.camera
+    plan = plan_exposure(
+        optics,
+        speed_mm_min,
+        blur_budget_px=camera.blur_budget_px,
+        capture_range_px=float(config.tracking.search_radius_px),
+        min_exposure_s=camera.min_exposure_us * 1e-6,
+        max_exposure_s=camera.max_exposure_us * 1e-6,
+    )
+    exposure_s = plan.exposure_s if camera.exposure_us is None else camera.exposure_us * 1e-6
+    if camera.frame_rate_hz is None:
+        period_s = max(min(plan.frame_period_s, 1.0 / camera.min_frame_rate_hz), exposure_s)
+    else:
+        period_s = 1.0 / camera.frame_rate_hz
+    if exposure_s > period_s:
+        raise InputError(
+            f"[camera] exposure_us: {exposure_s * 1e6:g} exceeds the frame period "
+            f"{period_s * 1e6:g} us"
+        )
+    blur = motion_blur_length(optics, speed_mm_min, exposure_s)
+    motion = motion_blur_length(optics, speed_mm_min, period_s).px
+    return dataclasses.replace(
+        plan,
+        exposure_s=exposure_s,
+        frame_period_s=period_s,
+        blur_um=blur.um,
+        blur_px=blur.px,
+        motion_per_frame_px=motion,
+        budget_met=bool(blur.px <= camera.blur_budget_px),
     )

@@ -18,6 +18,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from appliance.config import Config
+from appliance.errors import InputError
+
 
 @dataclass(frozen=True)
 class Optics:
@@ -67,3 +70,25 @@ class Optics:
     def image_px(self, object_mm: float) -> float:
         """Size on the sensor, px, of an object-plane length given in mm."""
         return self.image_um(object_mm) / self.pixel_size_um
+
+
+def configured_optics(config: Config, fallback: Optics | None) -> Optics:
+    """The `[optics]` of a configuration; `fallback` (a simulated preset's) when the table
+    gives none of its keys. Raises InputError naming a missing or bad key."""
+    o = config.optics
+    given = (o.focal_length_mm, o.object_distance_mm, o.pixel_size_um)
+    if all(v is None for v in given) and fallback is not None:
+        return fallback
+    missing = [
+        k
+        for k, v in zip(
+            ("focal_length_mm", "object_distance_mm", "pixel_size_um"), given, strict=True
+        )
+        if v is None
+    ]
+    if missing:
+        raise InputError(f"[optics] {missing[0]}: required (the camera's optics must be known)")
+    try:
+        return Optics(*given)
+    except ValueError as exc:
+        raise InputError(f"[optics]: {exc}") from None

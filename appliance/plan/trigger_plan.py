@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from appliance.config import TriggerConfig
 from appliance.plan.exposure import ExposurePlan
 
 DEFAULT_PULSE_WIDTH_US = 60.0
@@ -126,6 +127,39 @@ def plan_triggers(
         0,
         period_s,
         speed_mm_s * period_s,
+    )
+
+
+def configured_trigger_plan(
+    trigger: TriggerConfig, exposure: ExposurePlan, tick_hz: float
+) -> TriggerPlan:
+    """The trigger plan of an exposure plan for `[trigger]` (period or encoder source: the
+    encoder's resolution is used only with the encoder source).
+
+    Raises:
+        ValueError: the pulse does not fit (see `plan_triggers`).
+    """
+    encoder = trigger.source == "encoder"
+    return plan_triggers(
+        exposure,
+        tick_hz=tick_hz,
+        counts_per_mm=trigger.encoder_counts_per_mm if encoder else None,
+        pulse_width_us=trigger.pulse_width_us,
+    )
+
+
+def free_running_plan(exposure: ExposurePlan) -> TriggerPlan:
+    """The plan of a free-running camera (internal trigger source): no pulses, only the
+    exposure and the frame period of `exposure`."""
+    return TriggerPlan(
+        "internal",
+        exposure.speed_mm_min,
+        exposure.exposure_s * 1e6,
+        0,
+        0,
+        0,
+        exposure.frame_period_s,
+        exposure.speed_mm_min / 60.0 * exposure.frame_period_s,
     )
 
 

@@ -68,8 +68,9 @@ from appliance.recording.format import (
     strain_record,
     trigger_record,
 )
-from appliance.run.loop import LoopResult
+from appliance.run.loop import DeviceEvent, LoopResult
 from appliance.run.outputs import RunFacts
+from appliance.run.state import Transition
 
 MAX_DEGRADATION_LEVEL = 10
 
@@ -228,6 +229,20 @@ class McapRecorder:
         when = time_ns if time_ns is not None else self._last_time_ns
         when = self._wall_ns() if when is None else when
         self._message(TOPIC_LOG, when, 0, log_message(when, level, text))
+
+    def log_transition(self, transition: Transition) -> None:
+        """A change of the run state, in `/log`."""
+        reason = f": {transition.reason}" if transition.reason else ""
+        self.log(
+            "INFO",
+            f"run state {transition.source.value} -> {transition.target.value}{reason}",
+        )
+
+    def log_device_event(self, event: DeviceEvent) -> None:
+        """A device lost or back, in `/log` (the repeated "waiting" of an outage is not)."""
+        if event.kind != "waiting":
+            level = "INFO" if event.available else "WARNING"
+            self.log(level, f"{event.device} {event.kind}: {event.url}: {event.text}")
 
     def __call__(self, sample: StrainSample) -> None:
         """Record one sample (publishing thread). Raises RecordingError after a write error."""

@@ -1,28 +1,34 @@
-"""What every output of a test receives: the run's facts at the start, each sample, the result.
+"""The seam between a test and what follows it: outputs, their facts, and the run's hooks.
 
-An output (the MCAP recorder, the Rerun viewer, the strain file) follows one test:
+An output (the MCAP recorder, the Rerun viewer) follows one test:
 
     begin(facts)      once, after the reference frame is taken and the marks are placed
     output(sample)    for every sample, in order, on the loop's publishing thread
     end(result)       once, after the loop has ended (also after a fault or an abort)
+    stats()           after `end`: figures the output adds to the test's summary
 
 `RunFacts` holds everything fixed for the whole test: the configuration in force, the
 reference frame, the points and how they form gauge marks, the calibration, the device
 identities, and the mapping from device time to UNIX time.
+
+`RunHooks` is everything outside the runner that follows or drives one test, as one value:
+outputs, the samples' immediate sinks (Modbus registers, watchdog), and the listeners of run
+states, of the loop and of device events.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
 from appliance.config import Config
 from appliance.measure.frame_measurer import StrainSample
 from appliance.measure.gauges import Calibration, StrainGaugesLayout
-from appliance.run.loop import LoopResult
+from appliance.run.loop import DeviceEvent, LoopResult, MeasurementLoop
+from appliance.run.state import Transition
 from hal.camera.base import Frame
 
 
@@ -73,3 +79,28 @@ class RunOutput(Protocol):
 
     def end(self, result: LoopResult) -> None:
         """The test is over; `result` says how it ended. Close files and connections."""
+
+    def stats(self) -> dict[str, Any]:
+        """Figures for the test's summary (after `end`; {} when the output has none)."""
+
+
+@dataclass(frozen=True)
+class RunHooks:
+    """What follows and drives one test from outside the runner.
+
+    Attributes:
+        outputs: outputs following the test besides the runner's own (a viewer).
+        immediate_sinks: called with every sample on the tracking thread as soon as it is
+            measured (Modbus registers, watchdog): fast, non-blocking work only.
+        on_transition: called at every change of the run state.
+        on_loop: called with the measurement loop before it runs (to stop or zero it from
+            another thread).
+        device_listeners: called with every `DeviceEvent` (a camera or the machine lost or
+            back), on the acquisition thread.
+    """
+
+    outputs: Sequence[RunOutput] = ()
+    immediate_sinks: Sequence[Callable[[StrainSample], None]] = ()
+    on_transition: Callable[[Transition], None] | None = None
+    on_loop: Callable[[MeasurementLoop], None] | None = None
+    device_listeners: Sequence[Callable[[DeviceEvent], None]] = ()

@@ -17,9 +17,12 @@ a calibration device) it adds the errors:
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -140,3 +143,38 @@ class RunSummary:
 
 def _stat(function, values: np.ndarray, *args) -> float | None:
     return float(function(values, *args)) if values.size else None
+
+
+@dataclass
+class RunOutcome:
+    """What a run (or a replay) produced.
+
+    Attributes:
+        summary: the figures of the run (with `extra` merged in `as_dict`).
+        extra: run facts beyond the summary: exposure plan, gauge length, duration, counts
+            of the devices and outputs.
+        csv_path, summary_path: files written (None without an output directory).
+    """
+
+    summary: RunSummary
+    extra: dict[str, Any] = field(default_factory=dict)
+    csv_path: Path | None = None
+    summary_path: Path | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        """Summary and facts as one dictionary."""
+        return {**self.summary.as_dict(), **self.extra}
+
+    def to_json(self) -> str:
+        """Summary and facts as JSON (NaN and infinities as null)."""
+        return json.dumps(_json_ready(self.as_dict()), indent=2)
+
+
+def _json_ready(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _json_ready(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_json_ready(v) for v in value]
+    return value

@@ -32,7 +32,7 @@ import asyncio
 import socket
 import threading
 from collections.abc import Callable, Mapping
-from typing import Protocol
+from typing import Any, Protocol
 
 from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
@@ -376,10 +376,9 @@ class ModbusServedMachine:
     def return_to_start(self, speed_mm_min: float, timeout_s: float = 1.0) -> None:
         self._require().return_to_start(speed_mm_min, timeout_s)
 
-    def statistics(self) -> object:
-        """The poller's statistics (`appliance.devices.polled_machine.PollStatistics`); None when
-        closed."""
-        return self._client.statistics() if self._client is not None else None
+    def statistics(self) -> dict[str, Any]:
+        """The Modbus client's counters ({} when closed)."""
+        return self._client.statistics() if self._client is not None else {}
 
     def _require(self) -> TestingMachine:
         if self._client is None:

@@ -190,3 +190,7 @@ class Camera(Protocol):
 
     def fetch(self, timeout_s: float) -> Frame:
         """Next frame. Raises HardwareTimeout when none arrives in time."""
+
+    def statistics(self) -> dict[str, Any]:
+        """The backend's counters since construction (frames delivered and lost, transport
+        figures), JSON-ready; {} for a backend that keeps none."""

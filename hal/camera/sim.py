@@ -204,6 +204,10 @@ class SimCamera:
         self._delivered += 1
         return frame
 
+    def statistics(self) -> dict[str, Any]:
+        """{}: the simulator keeps no transport counters (its frame ids show lost exposures)."""
+        return {}
+
     def _next_start(self, timeout_s: float) -> float:
         mode = self._trigger.mode
         if mode is TriggerMode.INTERNAL:

@@ -8,7 +8,7 @@ start position) work only on controllers configured to accept them; the others r
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 
 @dataclass(frozen=True)
@@ -57,3 +57,7 @@ class TestingMachine(Protocol):
 
     def return_to_start(self, speed_mm_min: float, timeout_s: float = 1.0) -> None:
         """Drive the crosshead back to its start position."""
+
+    def statistics(self) -> dict[str, Any]:
+        """The client's counters since construction (reads, requests, failures), JSON-ready;
+        {} for a backend that keeps none."""

@@ -82,6 +82,10 @@ class SimMachine:
         self._command("return")
         self._machine.return_to_start(speed_mm_min, self._clock.now_s())
 
+    def statistics(self) -> dict[str, Any]:
+        """{}: the simulator keeps no client counters."""
+        return {}
+
     def _command(self, name: str) -> None:
         if not self._accepts_commands:
             raise HardwareConfigError(f"{self.url}: controller does not accept command {name}")

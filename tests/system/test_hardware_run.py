@@ -27,6 +27,7 @@ import pytest
 from appliance.config import parse_config
 from appliance.recording.reader import RecordingReader
 from appliance.run.loop import DeviceEvent
+from appliance.run.outputs import RunHooks
 from appliance.runner import run_test
 from appliance.sim.controller_server import ControllerServer
 from firmware_bridge.simulator import SimulatedMcu
@@ -147,9 +148,11 @@ def test_a_camera_that_goes_away_mid_test_is_waited_for_and_the_test_goes_on(tmp
             run_test(
                 config,
                 simulate=False,
-                immediate_sinks=[samples.append],
-                device_listeners=[events.append],
-                on_loop=loop_box.append,
+                hooks=RunHooks(
+                    immediate_sinks=[samples.append],
+                    device_listeners=[events.append],
+                    on_loop=loop_box.append,
+                ),
             )
         )
 

@@ -194,7 +194,7 @@ def test_polled_machine_hands_out_fresh_readings_and_refuses_stale_ones():
             except HardwareConnectError:
                 assert time.monotonic() < deadline, "readings did not come back"
                 time.sleep(0.02)
-        stats = polled.statistics()
+        stats = polled.poll_statistics()
         assert stats.reads > 2 and stats.failures > 0 and stats.p99_ms >= stats.p50_ms
     finally:
         polled.close()

@@ -1,0 +1,258 @@
+"""The devices of one test, and what is known of them before its reference frame is taken.
+
+`rig_for(config, simulate=...)` builds them, not yet opened:
+
+* simulated (`extensometer run --sim`): the simulated world (`appliance.sim.world`) gives the
+  camera and the machine on one clock, read in-process or over Modbus TCP
+  (`[sim] controller`); the world's ground truth is kept for scoring the result only;
+* real: the camera and the machine named by `[camera] url` and `[machine] url` through the
+  backend registry (`hal.registry`), the machine polled on its own thread. What the
+  simulator would know must then be configured: `[optics]`, `[gauge] length_mm`,
+  `[run] speed_mm_min`.
+
+`Rig.open` opens and configures them and prepares the triggering; `Rig.close` closes every
+device on every path, the trigger microcontroller's link included. `check_devices` runs the
+same checks without opening anything (the service does it before it says it is ready).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from appliance.config import Config, register_map_of
+from appliance.devices.mcu_trigger import McuTriggerLine, connect_trigger_line
+from appliance.devices.polled_machine import PolledMachine
+from appliance.devices.trigger_stamping import TriggerStampedCamera
+from appliance.errors import InputError
+from appliance.plan.exposure import ExposurePlan
+from appliance.plan.optics import Optics, configured_optics
+from appliance.plan.pacing import TriggerTimer
+from appliance.plan.trigger_plan import TriggerPlan, configured_trigger_plan
+from hal.camera.base import Camera, CameraSettings, Frame, PixelFormat, TriggerInfo, TriggerMode
+from hal.clock import Pace
+from hal.machine.base import TestingMachine
+from hal.registry import camera_from_url, machine_from_url
+
+if TYPE_CHECKING:
+    from appliance.sim.world import SimWorld
+
+
+@dataclass
+class Rig:
+    """The devices of a test and what is known of them before the reference is taken.
+
+    Attributes:
+        camera: the camera (after `open`, wrapped to stamp frames with their triggers' times
+            where a real camera is triggered by the microcontroller).
+        machine: the testing machine, or None (strain only).
+        optics: the configured optics (or the simulated preset's).
+        speed_mm_min: the test speed.
+        gauge_length_mm: the gauge length asked for, mm.
+        centre_px: the centre of the marks on the reference frame.
+        commands: whether the appliance starts and stops the crosshead.
+        block_when_full: the loop waits for room instead of dropping frames (a simulation
+            running as fast as possible, whose clock moves only when a frame is fetched).
+        world: the simulated world (simulated tests only; its truth only scores).
+        mcu_line: the real trigger microcontroller, once connected.
+    """
+
+    camera: Camera
+    machine: TestingMachine | None
+    optics: Optics
+    speed_mm_min: float
+    gauge_length_mm: float
+    centre_px: Callable[[Frame], tuple[float, float]]
+    commands: bool
+    block_when_full: bool
+    world: SimWorld | None = None
+    mcu_line: McuTriggerLine | None = None
+
+    def open(self, config: Config, plan: ExposurePlan) -> tuple[CameraSettings, TriggerPlan | None]:
+        """Open and configure the devices for `plan` and prepare the triggering: the camera
+        free-running at the planned rate, or on external edges from the trigger
+        microcontroller, configured and armed here. Returns the camera settings in force and
+        the trigger plan (None for a free-running camera). The caller closes the rig also
+        when this raises.
+
+        Raises:
+            InputError: a trigger that cannot be planned or reached (names the key).
+            HardwareError: a device that cannot be opened or configured.
+        """
+        self.camera.open()
+        if self.machine is not None:
+            self.machine.open()
+        in_force = self.camera.configure(
+            CameraSettings(
+                exposure_us=plan.exposure_s * 1e6,
+                gain_db=config.camera.gain_db,
+                region=config.camera.region(),
+                pixel_format=PixelFormat(config.camera.pixel_format),
+            )
+        )
+        return in_force, self._prepare_triggers(config, plan)
+
+    def _prepare_triggers(self, config: Config, plan: ExposurePlan) -> TriggerPlan | None:
+        camera = self.camera
+        if config.trigger.source == "internal":
+            camera.prepare(
+                TriggerInfo(mode=TriggerMode.INTERNAL, rate_hz=1.0 / plan.frame_period_s)
+            )
+            return None
+        if config.trigger.url:
+            world = self.world
+            self.mcu_line = connect_trigger_line(
+                config.trigger.url,
+                None if world is None else lambda host_ns: world.clock.at_wall_s(host_ns * 1e-9),
+            )
+            if world is not None:
+                world.camera.wire_trigger_input(self.mcu_line)
+        try:
+            triggers = configured_trigger_plan(config.trigger, plan, self.trigger_tick_hz())
+        except ValueError as exc:
+            raise InputError(f"[trigger] pulse_width_us: {exc}") from None
+        camera.prepare(TriggerInfo(mode=TriggerMode.EXTERNAL))
+        if self.world is None:
+            assert self.mcu_line is not None
+            self.camera = TriggerStampedCamera(camera, self.mcu_line, triggers)
+            return triggers
+        if self.mcu_line is not None:
+            self.mcu_line.start(triggers)
+            return triggers
+        self.world.trigger.configure(triggers)
+        self.world.trigger.arm(self.world.clock.now_s())
+        return triggers
+
+    def trigger_timer(self) -> TriggerTimer:
+        """What times the triggers: the real microcontroller or the simulated one."""
+        if self.mcu_line is not None:
+            return self.mcu_line
+        assert self.world is not None, "a real camera is triggered through [trigger] url"
+        return self.world.trigger
+
+    def trigger_tick_hz(self) -> float:
+        """Tick rate of the trigger microcontroller in use (real or simulated)."""
+        if self.mcu_line is not None:
+            return float(self.mcu_line.link.firmware.tick_hz)
+        return float(self.trigger_timer().tick_hz)
+
+    def close(self) -> None:
+        """Close the camera, the trigger microcontroller's link and the machine; idempotent."""
+        self.camera.close()
+        line, self.mcu_line = self.mcu_line, None
+        if line is not None:
+            line.release()
+        if self.machine is not None:
+            self.machine.close()
+
+
+def rig_for(config: Config, *, simulate: bool) -> Rig:
+    """The devices of a test, not yet opened; see the module docstring.
+
+    Raises:
+        InputError: naming the key at fault.
+        HardwareError: a backend refusing its URL.
+    """
+    return _simulated_rig(config) if simulate else _hardware_rig(config)
+
+
+def check_devices(config: Config, *, simulate: bool) -> None:
+    """Check, without opening anything, that the configured devices can run a test: the URLs
+    name known backends with valid options, and what a real test needs is configured.
+
+    Raises:
+        InputError: naming the key at fault.
+        HardwareError: a backend refusing its URL.
+    """
+    rig_for(config, simulate=simulate)
+
+
+def _simulated_rig(config: Config) -> Rig:
+    from appliance.sim.world import PRESETS, SimWorld
+
+    if not config.machine.url.startswith("sim://"):
+        raise InputError(
+            f"[machine] url: {config.machine.url or 'empty'}: the simulated test needs the "
+            "simulated machine (sim://machine)"
+        )
+    optics = configured_optics(config, PRESETS[config.sim.material].optics)
+    world = SimWorld.from_config(config, optics)
+    g = config.gauge
+    centre = (
+        (g.centre_x_px, g.centre_y_px)
+        if g.centre_x_px is not None and g.centre_y_px is not None
+        else world.specimen_centre_px
+    )
+    _check_trigger_url(config, simulate=True)
+    machine: TestingMachine = world.controller
+    if config.sim.controller == "modbus-tcp":
+        from appliance.sim.controller_server import ModbusServedMachine
+
+        machine = ModbusServedMachine(world.controller, poll_rate_hz=config.machine.poll_rate_hz)
+    return Rig(
+        camera=world.camera,
+        machine=machine,
+        optics=optics,
+        speed_mm_min=world.speed_mm_min,
+        gauge_length_mm=config.gauge.length_mm or world.gauge_length_mm,
+        centre_px=lambda reference: centre,
+        commands=True,
+        block_when_full=world.pace is Pace.FAST,
+        world=world,
+    )
+
+
+def _hardware_rig(config: Config) -> Rig:
+    for key, url in (("[camera] url", config.camera.url), ("[machine] url", config.machine.url)):
+        if url.startswith("sim://"):
+            raise InputError(f"{key}: {url} is simulated: run with --sim, or name a real device")
+    _check_trigger_url(config, simulate=False)
+    camera = camera_from_url(config.camera.url)
+    optics = configured_optics(config, None)
+    if config.gauge.length_mm is None:
+        raise InputError("[gauge] length_mm: required with a real specimen")
+    speed = config.run.speed_mm_min
+    if speed is None:
+        raise InputError("[run] speed_mm_min: required with a real machine (exposure plan)")
+    machine: TestingMachine | None = None
+    if config.machine.url:
+        controller = machine_from_url(
+            config.machine.url,
+            register_map=register_map_of(config, "[machine.registers]"),
+            accepts_commands=config.machine.accepts_commands,
+        )
+        machine = PolledMachine(controller, rate_hz=config.machine.poll_rate_hz)
+    g = config.gauge
+
+    def centre(reference: Frame) -> tuple[float, float]:
+        height, width = reference.image.shape[:2]
+        x = g.centre_x_px if g.centre_x_px is not None else (width - 1) / 2
+        y = g.centre_y_px if g.centre_y_px is not None else (height - 1) / 2
+        return float(x), float(y)
+
+    return Rig(
+        camera=camera,
+        machine=machine,
+        optics=optics,
+        speed_mm_min=speed,
+        gauge_length_mm=config.gauge.length_mm,
+        centre_px=centre,
+        commands=machine is not None and config.machine.accepts_commands,
+        block_when_full=False,
+    )
+
+
+def _check_trigger_url(config: Config, *, simulate: bool) -> None:
+    """Refuse a `[trigger] url` that does not go with [trigger] source (a real camera needs
+    one for period and encoder triggering) or, in a simulated test, with [sim] realtime."""
+    trigger = config.trigger
+    if trigger.url and trigger.source == "internal":
+        raise InputError("[trigger] url: set, but [trigger] source is internal")
+    if not trigger.url and trigger.source != "internal" and not simulate:
+        raise InputError(
+            f"[trigger] url: required with a real camera and [trigger] source "
+            f"{trigger.source!r} (the trigger microcontroller's serial port)"
+        )
+    if trigger.url and simulate and not config.sim.realtime:
+        raise InputError("[trigger] url: the microcontroller runs in real time: set [sim] realtime")
