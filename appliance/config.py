@@ -18,6 +18,7 @@ import math
 import tomllib
 import types
 import typing
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -349,8 +350,7 @@ def _check_value(value: Any, kind: Any, meta: dict, where: str) -> Any:
 
 
 def _build(cls: type, table: dict, source: str, section: str | None) -> Any:
-    hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls) if f.metadata.get("configurable", True)}
+    fields = _keys_of(cls)
     values = {}
     for key, value in table.items():
         where = f"{source}: [{section}] {key}" if section else f"{source}: [{key}]"
@@ -358,21 +358,63 @@ def _build(cls: type, table: dict, source: str, section: str | None) -> Any:
             known = ", ".join(fields)
             label = f"{source}: [{section}]" if section else source
             raise InputError(f"{label}: unknown key {key!r} (known: {known})")
-        kind = hints[key]
-        if dataclasses.is_dataclass(kind):
-            if not isinstance(value, dict):
-                raise InputError(f"{where}: must be a table")
-            values[key] = _build(kind, value, source, key)
-        else:
-            if isinstance(kind, types.UnionType):
-                kind = next(k for k in typing.get_args(kind) if k is not type(None))
-            values[key] = _check_value(value, kind, dict(fields[key].metadata), where)
+        values[key] = _field_value(cls, fields[key], value, where, source)
     if section is not None:
         _check_relations(section, fields, values, source)
     try:
         return cls(**values)
     except ValueError as exc:
         raise InputError(f"{source}: [{section}]: {exc}") from None
+
+
+def _keys_of(cls: type) -> dict[str, dataclasses.Field]:
+    """The keys of a table class: its configurable fields by name."""
+    return {f.name: f for f in dataclasses.fields(cls) if f.metadata.get("configurable", True)}
+
+
+def _field_value(cls: type, f: dataclasses.Field, value: Any, where: str, source: str) -> Any:
+    """`value` checked for field `f` of table class `cls`; errors start with `where`."""
+    kind = typing.get_type_hints(cls)[f.name]
+    if dataclasses.is_dataclass(kind):
+        if not isinstance(value, dict):
+            raise InputError(f"{where}: must be a table")
+        return _build(kind, value, source, f.name)
+    if isinstance(kind, types.UnionType):
+        kind = next(k for k in typing.get_args(kind) if k is not type(None))
+    return _check_value(value, kind, dict(f.metadata), where)
+
+
+@dataclass(frozen=True)
+class Override:
+    """One configuration key set from outside a file, a command-line option say.
+
+    Attributes:
+        option: how the user spelled it (`--speed-mm-min`): errors name it.
+        table, key: the key it sets (`run`, `speed_mm_min`).
+        value: the value, checked as the file's would be.
+    """
+
+    option: str
+    table: str
+    key: str
+    value: Any
+
+
+def with_overrides(config: Config, overrides: Sequence[Override]) -> Config:
+    """`config` with the overrides' keys set: each value checked as in a file, the error
+    naming its option (`--modbus-tcp: must be HOST:PORT ...`); then the whole configuration
+    checked again (a relation between keys names both keys).
+
+    Raises:
+        InputError: one line naming the option or the keys at fault.
+    """
+    tables = config_to_table(config)
+    for override in overrides:
+        cls = type(getattr(config, override.table))
+        f = _keys_of(cls)[override.key]
+        value = _field_value(cls, f, override.value, override.option, override.option)
+        tables = merge_tables(tables, {override.table: {override.key: value}})
+    return config_from_table(tables, "command line")
 
 
 def parse_config(text: str, source: str = "<config>") -> Config:

@@ -11,6 +11,21 @@ class InputError(Exception):
     """
 
 
+class ParameterError(ValueError):
+    """A value a domain function refuses for one of its parameters.
+
+    Attributes:
+        parameter: the parameter's name (`object_distance_mm`), so a caller can name its own
+            spelling of it (a command-line option, a configuration key).
+        reason: why, one line; the message is `parameter reason`.
+    """
+
+    def __init__(self, parameter: str, reason: str) -> None:
+        super().__init__(f"{parameter} {reason}")
+        self.parameter = parameter
+        self.reason = reason
+
+
 def read_user_text(path: Path, what: str) -> str:
     """Read a UTF-8 text file the user named; `what` names it in the one-line error.
 

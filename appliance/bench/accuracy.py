@@ -1,9 +1,9 @@
 """Accuracy benchmark: the experiments of Zhang et al. (2016), section 5, and harder cases.
 
-`extensometer bench accuracy --out DIR` writes `DIR/report.md`, PNG plots and
-`DIR/results.json`. Every image is rendered analytically by `appliance.dic.synthetic`, so the
-truth is exact; every measurement goes through the product's `Correlator` (integer search,
-then IC-GN).
+`extensometer bench accuracy --out DIR` writes the report `DIR/accuracy.md`, its figures
+`DIR/accuracy.json` and PNG plots `DIR/accuracy-*.png`. Every image is rendered analytically
+by `appliance.dic.synthetic`, so the truth is exact; every measurement goes through the
+product's `Correlator` (integer search, then IC-GN).
 
 Parts:
     (a) Tables 2/3: 700 x 700 speckle (the paper's N = 1200, R = 4, and a dense pattern),
@@ -26,7 +26,6 @@ IC-GN converged within 0.05 px of the truth.
 from __future__ import annotations
 
 import itertools
-import json
 import sys
 import time
 from collections.abc import Sequence
@@ -36,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from appliance import __version__
+from appliance.bench.results import write_report
 from appliance.dic.correlation import DEFAULT_PREFILTER_SIGMA, Correlator
 from appliance.dic.icgn import PointStatus
 from appliance.dic.synthetic import (
@@ -683,9 +683,9 @@ def write_plots(results: dict, out: Path) -> list[str]:
             ax.set_ylabel("u error (mean +- std), px")
             ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(out / "a_subpixel_error.png", dpi=110)
+    fig.savefig(out / "accuracy-a_subpixel_error.png", dpi=110)
     plt.close(fig)
-    names.append("a_subpixel_error.png")
+    names.append("accuracy-a_subpixel_error.png")
 
     b = results["b_blur"]
     translations = sorted({r["translation_px"] for r in b})
@@ -709,9 +709,9 @@ def write_plots(results: dict, out: Path) -> list[str]:
                 )
             _success_axes(ax, f"{pattern}, translation {translation} px", "motion blur length, px")
     fig.tight_layout()
-    fig.savefig(out / "b_blur_success.png", dpi=110)
+    fig.savefig(out / "accuracy-b_blur_success.png", dpi=110)
     plt.close(fig)
-    names.append("b_blur_success.png")
+    names.append("accuracy-b_blur_success.png")
 
     s = results["b_stretch"]
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
@@ -735,9 +735,9 @@ def write_plots(results: dict, out: Path) -> list[str]:
                 )
         _success_axes(ax, f"{pattern} speckle, one-step stretch", "axial strain, %")
     fig.tight_layout()
-    fig.savefig(out / "b_stretch_success.png", dpi=110)
+    fig.savefig(out / "accuracy-b_stretch_success.png", dpi=110)
     plt.close(fig)
-    names.append("b_stretch_success.png")
+    names.append("accuracy-b_stretch_success.png")
 
     c = results["c_subset"]
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
@@ -765,21 +765,18 @@ def write_plots(results: dict, out: Path) -> list[str]:
         ax.legend(fontsize=7)
     fig.suptitle("blur 6 px, noise sigma 2, translation (8.4, 0.7) px", fontsize=9)
     fig.tight_layout()
-    fig.savefig(out / "c_subset_size.png", dpi=110)
+    fig.savefig(out / "accuracy-c_subset_size.png", dpi=110)
     plt.close(fig)
-    names.append("c_subset_size.png")
+    names.append("accuracy-c_subset_size.png")
     return names
 
 
-def write_report(results: dict, out: Path, plots: list[str]) -> None:
-    """Write report.md from the results."""
+def report_markdown(results: dict, plots: list[str]) -> str:
+    """The report's body (Markdown) from the results."""
     lines = [
-        "# Accuracy benchmark: LPQ + IC-GN digital image correlation",
-        "",
-        f"Software version {__version__}. Produced by `extensometer bench accuracy"
-        f"{' --quick' if results['quick'] else ''} --out DIR` in {results['seconds']:.0f} s. "
-        "Images are rendered analytically (exact truth); every figure below was measured in "
-        "this run.",
+        f"{'Quick run (fewer cases and points). ' if results['quick'] else ''}"
+        f"{results['seconds']:.0f} s. Images are rendered analytically (exact truth); every "
+        "figure below was measured in this run.",
         "",
         "Success criteria: integer search within "
         f"{INTEGER_SUCCESS_PX:g} px of the truth in x and y; subpixel result converged within "
@@ -936,12 +933,12 @@ def write_report(results: dict, out: Path, plots: list[str]) -> None:
         ],
     )
     lines += ["", "## Plots", ""] + [f"![{name}]({name})" for name in plots]
-    (out / "report.md").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return "\n".join(lines) + "\n"
 
 
 def run_accuracy_benchmark(out: Path, *, quick: bool = False) -> int:
-    """Entry point of `extensometer bench accuracy`; returns the exit status."""
-    out.mkdir(parents=True, exist_ok=True)
+    """Entry point of `extensometer bench accuracy`: writes its report, figures and plots
+    into the directory `out`; returns the exit status."""
     start = time.perf_counter()
     results: dict = {"software_version": __version__, "quick": quick}
     for key, part in (
@@ -961,9 +958,15 @@ def run_accuracy_benchmark(out: Path, *, quick: bool = False) -> int:
     results["targets"] = check_targets(results)
     results["verdicts"] = verdicts(results["targets"])
     results["findings"] = findings(results)
+    out.mkdir(parents=True, exist_ok=True)
     plots = write_plots(results, out)
-    (out / "results.json").write_text(json.dumps(results, indent=1) + "\n", encoding="utf-8")
-    write_report(results, out, plots)
+    report = write_report(
+        out,
+        "accuracy",
+        "Accuracy of the measurement core: LPQ + IC-GN digital image correlation",
+        results,
+        report_markdown(results, plots),
+    )
     for t in results["targets"]:
         print(
             f"  {'ok ' if t['met'] else 'MISS'} {t['target']}: {t['case']}: "
@@ -972,5 +975,5 @@ def run_accuracy_benchmark(out: Path, *, quick: bool = False) -> int:
     print("verdicts:")
     for v in results["verdicts"]:
         print(f"  {'met   ' if v['met'] else 'MISSED'} {v['group']}")
-    print(f"report: {out / 'report.md'}")
+    print(f"report: {report}")
     return 0

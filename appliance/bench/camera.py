@@ -234,12 +234,13 @@ def run_camera_benchmark(
     *,
     exposures_us: Sequence[float] = EXPOSURES_US,
 ) -> int:
-    """Entry point of `extensometer bench camera`; prints the figures, writes `out` (JSON).
+    """Entry point of `extensometer bench camera`; prints the figures,
+    writes its report into the directory `out` (when given).
 
     With `url` None, runs Aravis' fake camera on 127.0.0.1 for the measurement. Returns the
     exit status (0: measured, whether or not the target was met).
     """
-    from appliance.bench.figures_output import emit_figures
+    from appliance.bench.results import emit_figures
 
     if frames < 2:
         raise ValueError(f"frames must be >= 2, got {frames}")
@@ -248,5 +249,12 @@ def run_camera_benchmark(
             figures = measure_camera(fake_url, frames, exposures_us)
     else:
         figures = measure_camera(url, frames, exposures_us)
-    emit_figures(figures, format_table(figures), as_json=as_json, out=out)
+    emit_figures(
+        "camera",
+        "GigE Vision acquisition: rate and loss",
+        figures,
+        format_table(figures),
+        as_json=as_json,
+        out=out,
+    )
     return 0

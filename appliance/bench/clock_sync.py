@@ -289,12 +289,13 @@ def format_table(figures: dict[str, Any]) -> str:
 
 
 def run_clock_sync_benchmark(out: Path | None, as_json: bool, *, duration_s: float = 10.0) -> int:
-    """Entry point of the clock-sync benchmark; prints the figures, writes `out` (JSON).
+    """Entry point of the clock-sync benchmark; prints the figures,
+    writes its report into the directory `out` (when given).
 
     Returns the exit status: 0 when measured (whether or not the target was met), 2 when the
     firmware toolchain or libsimavr is missing (the reason goes to stderr).
     """
-    from appliance.bench.figures_output import emit_figures
+    from appliance.bench.results import emit_figures
     from firmware_bridge.firmware_build import FirmwareBuildError
 
     if duration_s <= WARMUP_S:
@@ -305,5 +306,12 @@ def run_clock_sync_benchmark(out: Path | None, as_json: bool, *, duration_s: flo
     except FirmwareBuildError as error:
         sys.stderr.write(f"clock-sync benchmark: cannot build the firmware: {error}\n")
         return 2
-    emit_figures(figures, format_table(figures), as_json=as_json, out=out)
+    emit_figures(
+        "clock-sync",
+        "Host timestamps of trigger events after clock sync",
+        figures,
+        format_table(figures),
+        as_json=as_json,
+        out=out,
+    )
     return 0

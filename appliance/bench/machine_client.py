@@ -182,14 +182,22 @@ def format_table(figures: Mapping[str, Any]) -> str:
 def run_machine_benchmark(
     out: Path | None, as_json: bool, url: str | None = None, duration_s: float = 5.0
 ) -> int:
-    """Entry point of `extensometer bench machine`; prints the figures, writes `out` (JSON).
+    """Entry point of `extensometer bench machine`; prints the figures,
+    writes its report into the directory `out` (when given).
 
     Returns the exit status (0: measured, whether or not the target was met).
     """
-    from appliance.bench.figures_output import emit_figures
+    from appliance.bench.results import emit_figures
 
     figures = measure_machine_client(url, duration_s)
-    emit_figures(figures, format_table(figures), as_json=as_json, out=out)
+    emit_figures(
+        "machine",
+        "Reading the machine's state over Modbus TCP",
+        figures,
+        format_table(figures),
+        as_json=as_json,
+        out=out,
+    )
     return 0
 
 

@@ -343,14 +343,22 @@ def format_table(figures: Mapping[str, Any]) -> str:
 
 
 def run_modbus_benchmark(out: Path | None, as_json: bool, *, frames: int = 500) -> int:
-    """Entry point of `extensometer bench modbus`; prints the figures, writes `out` (JSON).
+    """Entry point of `extensometer bench modbus`; prints the figures,
+    writes its report into the directory `out` (when given).
 
     Returns the exit status (0: measured, whether or not the target was met).
     """
-    from appliance.bench.figures_output import emit_figures
+    from appliance.bench.results import emit_figures
 
     figures = measure_modbus_latency(frames)
-    emit_figures(figures, format_table(figures), as_json=as_json, out=out)
+    emit_figures(
+        "modbus",
+        "Latency from frame delivery to the Modbus registers",
+        figures,
+        format_table(figures),
+        as_json=as_json,
+        out=out,
+    )
     return 0
 
 

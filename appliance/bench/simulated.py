@@ -2,8 +2,8 @@
 
 `extensometer bench sim --out DIR [--quick]` runs the cases below with `appliance.runner`,
 each a complete test (reference, crosshead start, tracking with reference updates, break or
-strain limit), and writes `results.json` (every case's summary) and `report.md` (tables and
-verdicts). Targets:
+strain limit), and writes the report `DIR/sim.md` (tables and verdicts) and its figures
+`DIR/sim.json` (every case's summary); each case's files go under `DIR/sim/`. Targets:
 
 * rubber (ISO 37 type 1, 500 mm/min) to 600 % with the planner's exposure, and again with a
   long exposure giving >= 5 px of blur at the moving mark: strain error
@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from appliance.bench.results import write_report
 from appliance.config import Config
 from appliance.runner import run_test
 
@@ -153,12 +154,12 @@ KEYS = (
 
 
 def run_simulated_benchmark(out: Path, *, quick: bool = False) -> int:
-    """Run every case, print a table, write results.json and report.md; exit status 0."""
-    out.mkdir(parents=True, exist_ok=True)
+    """Run every case, print a table, write the report `out/sim.md` and its figures
+    `out/sim.json` (each case's strain.csv and summary.json under `out/sim/`); exit status 0."""
     results = []
     for name, config, target in cases(quick):
         started = time.perf_counter()
-        outcome = run_test(config, simulate=True, out_dir=out / _slug(name))
+        outcome = run_test(config, simulate=True, out_dir=out / "sim" / _slug(name))
         summary = json.loads(outcome.to_json())
         summary["wall_s"] = time.perf_counter() - started
         verdict = _verdict(name, summary)
@@ -167,10 +168,13 @@ def run_simulated_benchmark(out: Path, *, quick: bool = False) -> int:
     rate = throughput(60 if quick else 200)
     rate["verdict"] = "met" if rate["tracking_fps"] >= 200 else "missed"
     print(f"throughput, 1 MP, 10 points: {rate['verdict']}", flush=True)
-    (out / "results.json").write_text(
-        json.dumps({"tests": results, "throughput": rate}, indent=2) + "\n"
+    write_report(
+        out,
+        "sim",
+        "Simulated tensile tests against their ground truth",
+        {"tests": results, "throughput": rate},
+        _report(results, rate, quick),
     )
-    (out / "report.md").write_text(_report(results, rate, quick))
     print(_table(results))
     print(_throughput_table(rate))
     return 0
@@ -204,10 +208,9 @@ def _throughput_table(rate: dict[str, Any]) -> str:
 def _report(results: list[dict[str, Any]], rate: dict[str, Any], quick: bool) -> str:
     mode = "quick (shortened tests)" if quick else "full"
     return (
-        "# Simulated tensile tests against ground truth\n\n"
-        f"Command: `extensometer bench sim --out DIR{' --quick' if quick else ''}` ({mode}).\n"
-        "Every case is a whole simulated test; errors are against the simulator's ground truth "
-        "of the same material points. Per-sample series are in each case's strain.csv.\n\n"
+        f"Mode: {mode}. Every case is a whole simulated test; errors are against the "
+        "simulator's ground truth of the same material points. Per-sample series are in each "
+        "case's strain.csv under `sim/`.\n\n"
         + _table(results)
         + "\n\n"
         + _throughput_table(rate)

@@ -26,7 +26,7 @@ import numba
 import numpy as np
 
 from appliance import __version__
-from appliance.bench.figures_output import emit_figures
+from appliance.bench.results import emit_figures
 from appliance.dic import integer_search
 from appliance.dic.icgn import ICGN
 from appliance.dic.synthetic import AffineMapping, dense_speckle, render
@@ -216,8 +216,15 @@ def format_table(figures: dict) -> str:
     return "\n".join(lines)
 
 
-def run_speed_benchmark(*, as_json: bool = False, out: Path | None = None) -> int:
+def run_speed_benchmark(out: Path | None = None, as_json: bool = False) -> int:
     """Entry point of `extensometer bench speed`; returns the exit status."""
     figures = measure_speed()
-    emit_figures(figures, format_table(figures), as_json=as_json, out=out)
+    emit_figures(
+        "speed",
+        "Speed of the measurement core: IC-GN and integer search",
+        figures,
+        format_table(figures),
+        as_json=as_json,
+        out=out,
+    )
     return 0

@@ -297,7 +297,7 @@ def format_table(figures: Mapping[str, Any]) -> str:
 
 def run_trigger_jitter_benchmark(out: Path | None, as_json: bool) -> int:
     """Entry point of `extensometer bench trigger-jitter`; prints the figures and writes
-    `out` (JSON) when given.
+    its report into the directory `out` when given.
 
     Returns the exit status: 0 when measured (whether or not the target was met), 2 when the
     firmware or the harness cannot be built (missing avr-gcc or libsimavr; the reason is
@@ -305,7 +305,7 @@ def run_trigger_jitter_benchmark(out: Path | None, as_json: bool) -> int:
     """
     import sys
 
-    from appliance.bench.figures_output import emit_figures
+    from appliance.bench.results import emit_figures
     from firmware_bridge.firmware_build import FirmwareBuildError
 
     try:
@@ -313,5 +313,12 @@ def run_trigger_jitter_benchmark(out: Path | None, as_json: bool) -> int:
     except FirmwareBuildError as error:
         sys.stderr.write(f"trigger jitter benchmark: {error}\n")
         return 2
-    emit_figures(figures, format_table(figures), as_json=as_json, out=out)
+    emit_figures(
+        "trigger-jitter",
+        "Trigger timing of the real firmware under simavr",
+        figures,
+        format_table(figures),
+        as_json=as_json,
+        out=out,
+    )
     return 0

@@ -50,6 +50,15 @@ class Measurement:
     search: IntegerMatch | None
 
 
+def subsets_outside(points: np.ndarray, shape: tuple[int, ...], subset: int) -> np.ndarray:
+    """(n,) bool: whether the `subset` x `subset` square centred on each point of `points`
+    ((n, 2) x, y px) reaches outside an image of `shape` (rows, columns)."""
+    height, width = shape[:2]
+    half = subset // 2
+    x, y = points[:, 0], points[:, 1]
+    return (x - half < 0) | (y - half < 0) | (x + half > width - 1) | (y + half > height - 1)
+
+
 class Correlator:
     """Integer search followed by IC-GN, for one reference image and one set of points.
 
@@ -92,6 +101,8 @@ class Correlator:
             raise ValueError(f"search_radius must be >= 0, got {search_radius}")
         if reference_blur is not None and not (len(reference_blur) == 2 and reference_blur[0] >= 0):
             raise ValueError(f"reference_blur must be (length >= 0, angle), got {reference_blur}")
+        if lpq_window is not None and lpq_window > subset:
+            raise ValueError(f"lpq_window {lpq_window} exceeds subset {subset}")
         self.search = search
         self.search_radius = search_radius
         self.prewarps = prewarps
@@ -165,6 +176,7 @@ class Correlator:
 
 __all__ = [
     "DEFAULT_PREFILTER_SIGMA",
+    "subsets_outside",
     "Correlator",
     "Measurement",
     "PointStatus",

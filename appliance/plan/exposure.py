@@ -33,7 +33,7 @@ from typing import Literal, NamedTuple
 import numpy as np
 
 from appliance.config import Config
-from appliance.errors import InputError
+from appliance.errors import InputError, ParameterError
 from appliance.plan.optics import Optics
 
 DEFAULT_MAX_PERIOD_S = 1.0
@@ -137,7 +137,7 @@ def _finite(name: str, value: float, *, positive: bool) -> float:
         number = math.nan
     if not (math.isfinite(number) and (number > 0 if positive else number >= 0)):
         bound = "> 0" if positive else ">= 0"
-        raise ValueError(f"{name} must be a finite number {bound}, got {value!r}")
+        raise ParameterError(name, f"must be a finite number {bound}, got {value!r}")
     return number
 
 
@@ -206,7 +206,7 @@ def plan_exposure(
         The `ExposurePlan`.
 
     Raises:
-        ValueError: an argument out of range; the message names it.
+        ParameterError: an argument out of range (a ValueError naming it).
     """
     speed_mm_min = _finite("speed_mm_min", speed_mm_min, positive=False)
     blur_budget_px = _finite("blur_budget_px", blur_budget_px, positive=True)
@@ -216,13 +216,14 @@ def plan_exposure(
     max_period_s = _finite("max_period_s", max_period_s, positive=True)
     speed_fraction = _finite("speed_fraction", speed_fraction, positive=True)
     if min_exposure_s > max_exposure_s:
-        raise ValueError(
-            f"min_exposure_s ({min_exposure_s:g}) must not exceed max_exposure_s "
-            f"({max_exposure_s:g})"
+        raise ParameterError(
+            "min_exposure_s",
+            f"({min_exposure_s:g} s) must not exceed max_exposure_s ({max_exposure_s:g} s)",
         )
     if max_period_s < max_exposure_s:
-        raise ValueError(
-            f"max_period_s ({max_period_s:g}) must be >= max_exposure_s ({max_exposure_s:g})"
+        raise ParameterError(
+            "max_period_s",
+            f"({max_period_s:g} s) must be >= max_exposure_s ({max_exposure_s:g} s)",
         )
 
     point_speed = speed_fraction * speed_mm_min

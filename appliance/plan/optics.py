@@ -19,7 +19,7 @@ import math
 from dataclasses import dataclass
 
 from appliance.config import Config
-from appliance.errors import InputError
+from appliance.errors import InputError, ParameterError
 
 
 @dataclass(frozen=True)
@@ -40,11 +40,12 @@ class Optics:
         for name in ("focal_length_mm", "object_distance_mm", "pixel_size_um"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be finite and > 0, got {value}")
+                raise ParameterError(name, f"must be finite and > 0, got {value}")
         if not self.object_distance_mm > self.focal_length_mm:
-            raise ValueError(
-                f"object_distance_mm ({self.object_distance_mm:g}) must exceed "
-                f"focal_length_mm ({self.focal_length_mm:g}) for a real image"
+            raise ParameterError(
+                "object_distance_mm",
+                f"({self.object_distance_mm:g}) must exceed focal_length_mm "
+                f"({self.focal_length_mm:g}) for a real image",
             )
 
     @property

@@ -36,8 +36,6 @@ class MachineState:
 class TestingMachine(Protocol):
     """A tensile testing machine's controller as the appliance uses it."""
 
-    __test__ = False  # a protocol, not a pytest test class
-
     url: str
 
     def open(self, timeout_s: float = 5.0) -> None:

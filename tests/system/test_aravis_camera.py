@@ -311,9 +311,9 @@ def test_the_specimen_camera_stretches_as_its_truth_says(tmp_path):
 def test_the_camera_benchmark_reports_its_figures(fake, tmp_path):
     from appliance.bench.camera import run_camera_benchmark
 
-    out = tmp_path / "camera.json"
+    out = tmp_path / "results"
     assert run_camera_benchmark(out, True, url=fake.url, frames=40, exposures_us=(1000.0,)) == 0
-    figures = json.loads(out.read_text())
+    figures = json.loads((out / "camera.json").read_text())["figures"]
     (run,) = figures["runs"]
     assert run["frames"] == 40 and run["fps"] > 0
     assert {"lost_frames", "failures", "resent_packets", "interval_ms"} <= set(run)

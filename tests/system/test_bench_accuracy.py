@@ -18,7 +18,7 @@ def test_quick_accuracy_benchmark_writes_report_results_and_plots(tmp_path):
         check=False,
     )
     assert done.returncode == 0, done.stderr
-    results = json.loads((out / "results.json").read_text())
+    results = json.loads((out / "accuracy.json").read_text())["figures"]
     assert {"a_tables", "b_blur", "b_stretch", "c_subset", "d_hard", "verdicts"} <= set(results)
     dense_float = [
         r
@@ -26,8 +26,9 @@ def test_quick_accuracy_benchmark_writes_report_results_and_plots(tmp_path):
         if r["pattern"] == "dense" and r["condition"] == "float" and r["prefilter_sigma"] > 0
     ]
     assert dense_float and all(abs(r["u_error"]["mean"]) < 0.002 for r in dense_float)
-    report = (out / "report.md").read_text()
+    report = (out / "accuracy.md").read_text()
     assert "## Targets" in report and "## Findings" in report
     for name in ("a_subpixel_error", "b_blur_success", "b_stretch_success", "c_subset_size"):
-        assert (out / f"{name}.png").stat().st_size > 10_000
+        assert (out / f"accuracy-{name}.png").stat().st_size > 10_000
     assert "verdicts:" in done.stdout
+    assert "[Accuracy of the measurement core" in (out / "README.md").read_text()

@@ -23,7 +23,8 @@ from hal.errors import (
     HardwareFault,
     HardwareTimeout,
 )
-from hal.machine.base import MachineState, TestingMachine
+from hal.machine import base as machine_base
+from hal.machine.base import MachineState
 from hal.machine.modbus import MAX_BACKOFF_S, ModbusMachine, RtuLink, TcpLink, parse_url
 from hal.machine.register_map import GENERIC_CONTROLLER, RegisterMap
 from hal.registry import machine_from_url
@@ -117,7 +118,7 @@ def test_good_urls_and_the_registry():
     client = machine_from_url(
         "modbus-tcp://127.0.0.1:5020", machine=object(), clock=object(), accepts_commands=True
     )
-    assert isinstance(client, ModbusMachine) and isinstance(client, TestingMachine)
+    assert isinstance(client, ModbusMachine) and isinstance(client, machine_base.TestingMachine)
     assert client.register_map is GENERIC_CONTROLLER and client.accepts_commands
     with pytest.raises(HardwareConnectError, match="not open"):
         client.read_state(timeout_s=0.5)
@@ -385,9 +386,9 @@ def test_a_missing_serial_device_is_a_connect_error(tmp_path, clients):
 def test_the_benchmark_runs_and_writes_its_report(tmp_path, capsys):
     from appliance.bench.machine_client import run_machine_benchmark
 
-    out = tmp_path / "client.json"
+    out = tmp_path / "results"
     assert run_machine_benchmark(out, True, duration_s=0.3) == 0
-    figures = json.loads(out.read_text(encoding="utf-8"))
+    figures = json.loads((out / "machine.json").read_text(encoding="utf-8"))["figures"]
     assert json.loads(capsys.readouterr().out) == figures
     for phase in ("as_fast_as_possible", "paced"):
         assert figures[phase]["reads"] > 0 and figures[phase]["failures"] == {}

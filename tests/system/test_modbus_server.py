@@ -480,9 +480,9 @@ def test_pymodbus_internals_the_server_relies_on_are_there():
 
 
 def test_latency_benchmark_runs_and_writes_its_report(tmp_path, capsys):
-    report = tmp_path / "modbus.json"
-    assert run_modbus_benchmark(report, True, frames=10) == 0
-    figures = json.loads(report.read_text(encoding="utf-8"))
+    out = tmp_path / "results"
+    assert run_modbus_benchmark(out, True, frames=10) == 0
+    figures = json.loads((out / "modbus.json").read_text(encoding="utf-8"))["figures"]
     assert json.loads(capsys.readouterr().out) == figures
     assert figures["verdict"] in ("met", "missed") and figures["setup"]["points"] == 10
     for key in ("without_client", "with_polling_client"):

@@ -1,0 +1,149 @@
+"""`extensometer bench NAME`: the benchmarks, programs that measure and report figures.
+
+Every benchmark prints its figures (a table, or JSON with `--json` where offered) and, with
+`--out DIR`, writes its report and figures into DIR and refreshes DIR's index
+(`appliance.bench.results`); the repository keeps the reference host's reports in
+`appliance/bench/results/`. Targets are judged in the reports, never by the exit status: 0
+means measured, met or not.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from appliance.cli import arguments
+
+
+def add_parser(commands: argparse._SubParsersAction) -> None:
+    """The `bench` command and its benchmarks."""
+    bench = commands.add_parser("bench", help="benchmarks: programs that measure and report")
+    benches = bench.add_subparsers(dest="bench", required=True, parser_class=arguments.Parser)
+
+    accuracy = benches.add_parser(
+        "accuracy",
+        help="reproduce the paper's accuracy experiments: subpixel error, blur, stretch, subset",
+    )
+    accuracy.add_argument(
+        "--quick", action="store_true", help="fewer cases and points, for a fast look"
+    )
+    _add_out(accuracy, required=True)
+    accuracy.set_defaults(handler=_accuracy)
+
+    speed = benches.add_parser("speed", help="IC-GN and integer-search throughput")
+    _add_json_and_out(speed)
+    speed.set_defaults(handler=_speed)
+
+    simulated = benches.add_parser(
+        "sim", help="whole simulated tensile tests against their ground truth"
+    )
+    simulated.add_argument("--quick", action="store_true", help="shortened tests")
+    _add_out(simulated, required=True)
+    simulated.set_defaults(handler=_simulated)
+
+    modbus = benches.add_parser(
+        "modbus", help="latency from frame delivery to Modbus register update (10 points)"
+    )
+    _add_json_and_out(modbus)
+    modbus.set_defaults(handler=_modbus)
+
+    camera = benches.add_parser(
+        "camera",
+        help="GigE Vision acquisition rate and loss (the Aravis fake camera on loopback)",
+    )
+    camera.add_argument("--camera", metavar="URL", help="a camera instead of the fake one")
+    camera.add_argument(
+        "--frames", type=arguments.frame_count, default=600, help="frames per setting"
+    )
+    _add_json_and_out(camera)
+    camera.set_defaults(handler=_camera)
+
+    machine = benches.add_parser(
+        "machine", help="the machine's state read over Modbus TCP: rate and latency"
+    )
+    machine.add_argument(
+        "--machine", metavar="URL", help="a controller instead of the simulated one"
+    )
+    machine.add_argument(
+        "--duration",
+        type=arguments.positive_float,
+        default=5.0,
+        help="seconds per measurement (5)",
+    )
+    _add_json_and_out(machine)
+    machine.set_defaults(handler=_machine)
+
+    jitter = benches.add_parser(
+        "trigger-jitter", help="trigger pulse timing of the real firmware under simavr"
+    )
+    _add_json_and_out(jitter)
+    jitter.set_defaults(handler=_trigger_jitter)
+
+    clock = benches.add_parser(
+        "clock-sync", help="host timestamp error after clock sync, firmware under simavr"
+    )
+    _add_json_and_out(clock)
+    clock.set_defaults(handler=_clock_sync)
+
+
+def _add_out(parser: argparse.ArgumentParser, *, required: bool = False) -> None:
+    parser.add_argument(
+        "--out",
+        type=Path,
+        required=required,
+        metavar="DIR",
+        help="results directory: the report, the figures as JSON, and the directory's index",
+    )
+
+
+def _add_json_and_out(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    _add_out(parser)
+
+
+def _accuracy(args: argparse.Namespace) -> int:
+    from appliance.bench.accuracy import run_accuracy_benchmark
+
+    return run_accuracy_benchmark(args.out, quick=args.quick)
+
+
+def _speed(args: argparse.Namespace) -> int:
+    from appliance.bench.speed import run_speed_benchmark
+
+    return run_speed_benchmark(args.out, args.json)
+
+
+def _simulated(args: argparse.Namespace) -> int:
+    from appliance.bench.simulated import run_simulated_benchmark
+
+    return run_simulated_benchmark(args.out, quick=args.quick)
+
+
+def _modbus(args: argparse.Namespace) -> int:
+    from appliance.bench.modbus import run_modbus_benchmark
+
+    return run_modbus_benchmark(args.out, args.json)
+
+
+def _camera(args: argparse.Namespace) -> int:
+    from appliance.bench.camera import run_camera_benchmark
+
+    return run_camera_benchmark(args.out, args.json, url=args.camera, frames=args.frames)
+
+
+def _machine(args: argparse.Namespace) -> int:
+    from appliance.bench.machine_client import run_machine_benchmark
+
+    return run_machine_benchmark(args.out, args.json, url=args.machine, duration_s=args.duration)
+
+
+def _trigger_jitter(args: argparse.Namespace) -> int:
+    from appliance.bench.trigger_jitter import run_trigger_jitter_benchmark
+
+    return run_trigger_jitter_benchmark(args.out, args.json)
+
+
+def _clock_sync(args: argparse.Namespace) -> int:
+    from appliance.bench.clock_sync import run_clock_sync_benchmark
+
+    return run_clock_sync_benchmark(args.out, args.json)

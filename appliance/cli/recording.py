@@ -1,0 +1,100 @@
+"""`extensometer replay` and `extensometer info`: recordings measured again, and summarised.
+
+`replay` measures a recorded test again from its recorded pixels
+(`appliance.replay.replay_recording`) and exits 1 when the file is damaged or, without an
+override, when any sample differs from the recording; `info` reads a recording front to back
+with every CRC checked (`appliance.recording.info`) and exits 1 when the file is not whole.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from appliance.cli import arguments
+from appliance.cli.printing import print_json, print_summary
+from appliance.cli.run import viewer_of
+
+
+def add_parsers(commands: argparse._SubParsersAction) -> None:
+    """The `replay` and `info` commands."""
+    replay = commands.add_parser(
+        "replay",
+        help="measure a recorded test again from its recorded pixels",
+        description=(
+            "Re-run the tracker on the pixels recorded in FILE.mcap with the recorded "
+            "configuration: the strain series is reproduced bit for bit "
+            "(max_abs_diff_to_recorded = 0.0). With --config, the tables and keys of that "
+            "file replace the recorded ones and the test is measured again. A damaged file "
+            "is replayed up to the damage, which is reported."
+        ),
+    )
+    replay.add_argument("recording", metavar="FILE.mcap", type=Path, help="a recording")
+    replay.add_argument(
+        "--config", type=Path, metavar="OVERRIDE", help="TOML tables replacing recorded keys"
+    )
+    arguments.add_rerun_options(replay)
+    replay.add_argument("--json", action="store_true", help="print the summary as JSON, quietly")
+    replay.set_defaults(handler=replay_test)
+
+    info = commands.add_parser(
+        "info",
+        help="summarise a recording and check its integrity",
+        description=(
+            "Read FILE.mcap front to back, checking every CRC, and print what it holds: the "
+            "test, its channels and message counts, how the run ended, and any damage."
+        ),
+    )
+    info.add_argument("recording", metavar="FILE.mcap", type=Path, help="a recording")
+    info.add_argument("--json", action="store_true", help="print JSON on stdout")
+    info.set_defaults(handler=show_info)
+
+
+def replay_test(args: argparse.Namespace) -> int:
+    """Run `replay`; returns the exit status."""
+    from appliance.replay import is_exact, replay_recording
+
+    progress = None if args.json or not sys.stderr.isatty() else sys.stderr
+    viewer = viewer_of(arguments.configuration(None, args))
+    outputs = [viewer] if viewer is not None else []
+    for output in outputs:
+        output.start()
+    try:
+        outcome = replay_recording(
+            args.recording, override=args.config, outputs=outputs, progress=progress
+        )
+    finally:
+        for output in outputs:
+            output.close()
+    if args.json:
+        print(outcome.to_json())
+    else:
+        print_summary(outcome)
+    damage = outcome.extra.get("damage")
+    if damage:
+        print(f"extensometer: {args.recording}: {damage}", file=sys.stderr)
+        return 1
+    if args.config is None and not is_exact(outcome):
+        print(
+            f"extensometer: {args.recording}: {outcome.extra['samples_differing']} samples "
+            "differ from the recording",
+            file=sys.stderr,
+        )
+        return 1
+    return 0
+
+
+def show_info(args: argparse.Namespace) -> int:
+    """Run `info`; exit status 1 when the recording is damaged."""
+    from appliance.recording.info import print_info, recording_info
+
+    info = recording_info(args.recording)
+    if args.json:
+        print_json(info, indent=1)
+    else:
+        print_info(info, sys.stdout)
+    if info["damage"]:
+        print(f"extensometer: {args.recording}: {info['damage']}", file=sys.stderr)
+        return 1
+    return 0
