@@ -6,10 +6,10 @@ reports. The writer stores the format version in the `extensometer.recording` me
 functions here, which turn an older version's names into the current ones and leave the
 current version's untouched. Nothing is written back: the file stays as it was recorded.
 
-Version 1 called the testing machine the "frame": its recorded configuration has a
-`[frame]` table (with `url = "sim://frame"` in simulated tests), the machine's state is on
+Version 1 called the testing machine the "frame": its recorded configuration has a table
+named `frame` (with `url = "sim://frame"` in simulated tests), the machine's state is on
 `/frame/state`, the run facts say `frame_url` and the devices `frame`. Version 2 says
-`[machine]`, `sim://machine`, `/machine/state`, `machine_url` and `machine`.
+`machine` for the table, `sim://machine`, `/machine/state`, `machine_url` and `machine`.
 """
 
 from __future__ import annotations
