@@ -88,6 +88,8 @@ def test_the_simulated_world_is_deterministic_for_a_seed(tmp_path):
     ("args", "culprit"),
     [
         (["--sim", "--speed-mm-min", "-5"], "--speed-mm-min"),
+        (["--sim", "--speed-mm-min", "20000"], "--speed-mm-min: must be <= 10000"),
+        (["--sim", "--modbus-tcp", "127.0.0.1"], "--modbus-tcp: must be HOST:PORT"),
         (["--sim", "--material", "wood"], "--material"),
         (["--sim", "--until-strain", "1", "--until-break"], "--until-break"),
         (["--sim", "--exposure-us", "fast"], "--exposure-us"),

@@ -5,13 +5,16 @@ import pytest
 
 from appliance.config import (
     Config,
+    Override,
     config_from_table,
     config_to_table,
     load_config,
     merge_tables,
     parse_config,
+    with_overrides,
 )
 from appliance.errors import InputError
+from appliance.measure.tracking import TrackerSettings
 
 
 def test_empty_file_gives_the_defaults_and_values_are_typed():
@@ -113,3 +116,35 @@ def test_a_configuration_survives_its_table_form():
     merged = merge_tables(table, {"tracking": {"subset_px": 31}})
     assert config_from_table(merged).tracking.subset_px == 31
     assert config_from_table(merged).camera.exposure_us == 250.0
+
+
+def test_the_tracking_table_is_the_trackers_settings_with_one_default_per_key():
+    assert Config().tracking == TrackerSettings()
+    table = config_to_table(Config())["tracking"]
+    assert "axis" not in table and "margin_px" not in table and "blur_tolerance_px" not in table
+    with pytest.raises(InputError, match=re.escape("x.toml: [tracking]: unknown key 'margin_px'")):
+        parse_config("[tracking]\nmargin_px = 2\n", "x.toml")
+
+
+def test_overrides_are_checked_as_a_file_is_and_name_their_option():
+    config = with_overrides(
+        parse_config("[run]\nspeed_mm_min = 50\n"),
+        [
+            Override("--speed-mm-min", "run", "speed_mm_min", 20),
+            Override("--modbus-tcp", "modbus", "tcp", "127.0.0.1:5020"),
+        ],
+    )
+    assert config.run.speed_mm_min == 20.0 and isinstance(config.run.speed_mm_min, float)
+    assert config.modbus.tcp == "127.0.0.1:5020"
+    for override, message in (
+        (Override("--speed-mm-min", "run", "speed_mm_min", 2e4), "--speed-mm-min: must be <= "),
+        (Override("--modbus-tcp", "modbus", "tcp", "127.0.0.1"), "--modbus-tcp: must be HOST:PORT"),
+        (Override("--material", "sim", "material", "wood"), "--material: must be one of"),
+    ):
+        with pytest.raises(InputError) as caught:
+            with_overrides(Config(), [override])
+        assert str(caught.value).startswith(message), str(caught.value)
+    with pytest.raises(
+        InputError, match=re.escape("[tracking] min_subset_px: must be <= subset_px")
+    ):
+        with_overrides(Config(), [Override("--subset", "tracking", "subset_px", 9)])
