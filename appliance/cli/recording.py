@@ -1,7 +1,7 @@
 """`extensometer replay` and `extensometer info`: recordings measured again, and summarised.
 
 `replay` measures a recorded test again from its recorded pixels
-(`appliance.replay.replay_recording`) and exits 1 when the file is damaged or, without an
+(`appliance.recording.replay.replay_recording`) and exits 1 when the file is damaged or, without an
 override, when any sample differs from the recording; `info` reads a recording front to back
 with every CRC checked (`appliance.recording.info`) and exits 1 when the file is not whole.
 """
@@ -53,7 +53,7 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
 
 def replay_test(args: argparse.Namespace) -> int:
     """Run `replay`; returns the exit status."""
-    from appliance.replay import is_exact, replay_recording
+    from appliance.recording.replay import is_exact, replay_recording
 
     progress = None if args.json or not sys.stderr.isatty() else sys.stderr
     viewer = viewer_of(arguments.configuration(None, args))

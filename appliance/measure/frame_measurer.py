@@ -1,8 +1,8 @@
 """One frame to one strain sample: tracking, strain, validity and the end of a test.
 
 `FrameMeasurer` is the whole measurement of a frame, the same code for the live loop
-(`appliance.run.loop`) and for the replay of a recording (`appliance.replay`), so a replay on the
-recorded pixels reproduces the recorded strain exactly:
+(`appliance.run.loop`) and for the replay of a recording (`appliance.recording.replay`), so a
+replay on the recorded pixels reproduces the recorded strain exactly:
 
 1. the marks are tracked (`appliance.measure.tracking.MarkTracker`) at the frame's device time;
 2. their positions become strains (`appliance.measure.gauges.StrainGauges`); a zero request makes

@@ -1,9 +1,10 @@
 """The format of a test recording: MCAP channels, their schemas, and how records are encoded.
 
-One MCAP file per test (written by `appliance.recording.writer`, read by `appliance.replay` and
-`extensometer info`). Log time of every per-frame message is the frame's acquisition time
-(start of exposure) as UNIX time in ns; the message `sequence` is the sample index, so the
-messages of one frame can be gathered from every channel. Per frame, in this order:
+One MCAP file per test (written by `appliance.recording.writer`, read by
+`appliance.recording.replay` and `extensometer info`). Log time of every per-frame message is
+the frame's acquisition time (start of exposure) as UNIX time in ns; the message `sequence` is
+the sample index, so the messages of one frame can be gathered from every channel. Per frame,
+in this order:
 
 * `/camera/window/<k>` (protobuf `foxglove.RawImage`): the pixels mark k's tracking read;
 * `/camera/full` (`foxglove.RawImage`): the whole frame at the configured rate, and the
