@@ -55,7 +55,8 @@ class Rig:
         block_when_full: the loop waits for room instead of dropping frames (a simulation
             running as fast as possible, whose clock moves only when a frame is fetched).
         world: the simulated world (simulated tests only; its truth only scores).
-        mcu_line: the real trigger microcontroller, once connected.
+        mcu_line: the real trigger microcontroller, once connected (kept after `close`, so
+            its counts can be read).
     """
 
     camera: Camera
@@ -140,9 +141,8 @@ class Rig:
     def close(self) -> None:
         """Close the camera, the trigger microcontroller's link and the machine; idempotent."""
         self.camera.close()
-        line, self.mcu_line = self.mcu_line, None
-        if line is not None:
-            line.release()
+        if self.mcu_line is not None:
+            self.mcu_line.release()
         if self.machine is not None:
             self.machine.close()
 

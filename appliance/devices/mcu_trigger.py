@@ -50,6 +50,7 @@ class McuTriggerLine:
         self.wait_s = wait_s
         self.events: list[TriggerEvent] = []
         self.unstamped = 0
+        self._released = False
 
     def start(self, plan: TriggerPlan, *, start_tick: int = 0) -> None:
         """Send the plan to the firmware and arm it; the first pulse at `start_tick` (0 = as
@@ -78,7 +79,11 @@ class McuTriggerLine:
         self.link.disarm()
 
     def release(self) -> None:
-        """Disarm the firmware if the link still answers, and close the link."""
+        """Disarm the firmware if the link still answers, and close the link; idempotent. The
+        events consumed stay readable."""
+        if self._released:
+            return
+        self._released = True
         try:
             self.stop()
         except FirmwareError:
