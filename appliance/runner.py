@@ -89,6 +89,8 @@ def run_test(
     calibration = Calibration.from_optics(rig.optics.pixel_size_um, rig.optics.magnification)
     line = ProgressLine(progress) if progress is not None else None
     samples = _SampleLog(simulate)
+    if out_dir is not None:
+        out_dir.mkdir(parents=True, exist_ok=True)
     recorder = None
     if record_path is not None:
         recorder = McapRecorder(
@@ -102,7 +104,6 @@ def run_test(
         in_force, triggers = rig.open(config, plan)
         pacer = _exposure_pacer(config, rig, in_force.exposure_us, recorder, line)
         if out_dir is not None:
-            out_dir.mkdir(parents=True, exist_ok=True)
             writer = _strain_file(out_dir / "strain.csv", samples if simulate else None)
     except BaseException:
         if recorder is not None:

@@ -51,7 +51,7 @@ PULL_SPEED_MM_MIN = 5.0
 SERVER_START_TIMEOUT_S = 30.0
 
 
-def _phase(frame: Any, duration_s: float, rate_hz: float | None) -> dict[str, Any]:
+def _phase(client: Any, duration_s: float, rate_hz: float | None) -> dict[str, Any]:
     """Read for `duration_s`: back to back (rate_hz None) or on a fixed schedule."""
     from hal.errors import HardwareError
 
@@ -76,7 +76,7 @@ def _phase(frame: Any, duration_s: float, rate_hz: float | None) -> dict[str, An
             break
         before = time.perf_counter()
         try:
-            frame.read_state(timeout_s=READ_TIMEOUT_S)
+            client.read_state(timeout_s=READ_TIMEOUT_S)
         except HardwareError as exc:
             failures[type(exc).__name__] += 1
             continue
@@ -109,16 +109,16 @@ def measure_machine_client(url: str | None = None, duration_s: float = 5.0) -> d
         target = f"modbus-tcp://127.0.0.1:{port}?unit=1"
     else:
         target = url
-    frame = ModbusMachine(target)
+    client = ModbusMachine(target)
     try:
-        frame.open(timeout_s=5.0)
+        client.open(timeout_s=5.0)
         for _ in range(50):
-            frame.read_state(timeout_s=READ_TIMEOUT_S)
-        fast = _phase(frame, duration_s, None)
-        paced = _phase(frame, duration_s, PACED_RATE_HZ)
-        statistics = frame.statistics()
+            client.read_state(timeout_s=READ_TIMEOUT_S)
+        fast = _phase(client, duration_s, None)
+        paced = _phase(client, duration_s, PACED_RATE_HZ)
+        statistics = client.statistics()
     finally:
-        frame.close()
+        client.close()
         if server is not None:
             stop_peer(server, "the simulated controller", timeout_s=30.0)
     met = fast["rate_hz"] >= TARGET_RATE_HZ and paced["rate_hz"] >= 0.99 * PACED_RATE_HZ
@@ -163,7 +163,7 @@ def format_table(figures: Mapping[str, Any]) -> str:
     paced = figures["paced"]
     return "\n".join(
         [
-            f"Frame client over {setup['url']} ({setup['controller']}), {setup['cpus']} CPUs, "
+            f"Machine client over {setup['url']} ({setup['controller']}), {setup['cpus']} CPUs, "
             f"load average {setup['load_average_1min']:.2f} before the run; "
             f"target: {figures['target']} -> {figures['verdict']}",
             "",

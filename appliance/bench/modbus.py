@@ -272,7 +272,7 @@ def _figures(run: Mapping[str, Any]) -> dict[str, Any]:
 def measure_modbus_latency(frames: int = 500) -> dict[str, Any]:
     """Warm up, then measure without and with a polling client; the figures as a dict.
 
-    The machine's 1-minute load average before the runs is reported with the figures: other
+    The host's 1-minute load average before the runs is reported with the figures: other
     work on the same cores shows up directly in the tails.
     """
     load = os.getloadavg()[0]

@@ -2,7 +2,7 @@
 
 A benchmark that measures a client against a server (or a server against a client) runs the
 other side in a separate Python process, so the two do not share one interpreter lock and the
-figures are those of two programs on one machine, as in service. The peer is a module run as
+figures are those of two programs on one host, as in service. The peer is a module run as
 `python -m MODULE ARGS...`; it prints `ready` on stdout once it serves, and ends when it reads
 `stop` on stdin, printing its own figures (JSON) on stdout if it has any.
 """

@@ -5,7 +5,7 @@ writes
 
 * `DIR/<name>.md`: its report, headed by what was run, when, and on what host (cores, CPU,
   Python, software version), then the figures as the benchmark presents them;
-* `DIR/<name>.json`: every figure, for machines;
+* `DIR/<name>.json`: every figure, for programs to read;
 
 and refreshes `DIR/README.md`, the index of every report in DIR. The repository keeps the
 reports of its reference host in `appliance/bench/results/` (written by

@@ -11,7 +11,7 @@ strain limit), and writes the report `DIR/sim.md` (tables and verdicts) and its 
 * metal (ISO 6892-1 flat, 10 mm/min): elongation error <= 1.5 um below 300 um of elongation;
 * throughput: >= 200 frames/s tracked with 10 points on 1 MP frames. The simulated camera
   first renders the frames of a metal test into memory (its time reported apart), then the
-  tracker and the gauges measure them back to back, alone on the machine.
+  tracker and the gauges measure them back to back, alone on the host.
 
 `--quick` shortens the rubber tests to 100 % and the metal test to 0.8 % strain.
 """

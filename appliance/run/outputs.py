@@ -46,7 +46,7 @@ class RunFacts:
         gauge_length_mm: the original axial gauge length L0, mm.
         epoch_offset_ns: add to a device timestamp to get UNIX time, ns (measured when the
             reference frame was delivered).
-        devices: identities of the devices and software, name -> text (camera, frame,
+        devices: identities of the devices and software, name -> text (camera, machine,
             software version).
         facts: further facts worth keeping (exposure plan, material of a simulation).
     """

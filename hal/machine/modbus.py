@@ -14,7 +14,7 @@ preset by default); the read plan is computed once, so `read_state` sends one re
 coalesced span (one request for the whole generic map) and decodes with pymodbus' converters.
 
 Timeouts. Every call takes `timeout_s` and returns or raises within it (plus the scheduling
-slack of the machine): the lock that serialises calls, the reconnect, and every request share
+slack of the host): the lock that serialises calls, the reconnect, and every request share
 one deadline. pymodbus' sync clients take one timeout at construction and may wait it out
 once more for a reply that arrives in pieces; this module uses them with pymodbus' retries
 disabled (`retries=0`) and subclasses that give each wait only what is left of the call's

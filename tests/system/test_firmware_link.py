@@ -579,7 +579,7 @@ def test_clock_sync_tracks_the_simulated_clock(start):
     estimate = link.clock_estimate()
     assert estimate is not None
     if _pacing_slips(run):
-        pytest.skip("the harness fell behind the wall clock (machine too busy): no ground truth")
+        pytest.skip("the harness fell behind the wall clock (host too busy): no ground truth")
     assert abs(estimate.rate_hz - 2_000_000) < 2_000_000 * 1000e-6
     assert max(abs(e) for e in errors) < 10_000_000, errors
     assert max(errors) - min(errors) < 5_000_000, errors
