@@ -2,8 +2,9 @@
 
 `REGISTER_MAP` is the whole map: one `Register` per value (name, zero-based address, register
 count, data type, access, unit, description, accepted values of a writable one). The server
-(`appliance.live.modbus_server`) builds its register image and its write checks from it, the README
-table is rendered from it (`render_markdown_table`), and the tests compare the two.
+(`appliance.live.modbus_server`) builds its register image and its write checks from it, the
+integrator's table in appliance/live/README.md is rendered from it (`render_markdown_table`),
+and the tests compare the two.
 
 Conventions the map follows:
 
@@ -500,7 +501,8 @@ def register_at(address: int) -> Register | None:
 
 
 def render_markdown_table() -> str:
-    """The map as a Markdown table (what the README's "Modbus register map" section holds)."""
+    """The map as a Markdown table (what the "Modbus register map" section of
+    appliance/live/README.md holds)."""
     lines = [
         "| address | name | type | access | unit | description |",
         "|---|---|---|---|---|---|",
