@@ -1,1 +1,1 @@
-"""Host side of the trigger microcontroller: message table, framing, serial link, clock sync."""
+"""Host side of the trigger microcontroller: message table, packets, serial link, clock sync."""

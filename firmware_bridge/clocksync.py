@@ -32,7 +32,7 @@ Error model (what `ClockEstimate` reports, all in host nanoseconds):
   the window's centre through the slope's uncertainty. It shrinks with more samples.
 * **path asymmetry**, which no number of round trips can reveal: if the way out (PING) always
   takes longer than the way back (PONG), every midpoint is early by half the difference. The
-  caller may correct a known asymmetry (`asymmetry_ns`, e.g. from the two frames' lengths on
+  caller may correct a known asymmetry (`asymmetry_ns`, e.g. from the two packets' lengths on
   the wire); what remains is bounded by causality: the true line must pass through every
   round trip's interval, so the line may be shifted by any ``d`` in [`causal_low_ns`,
   `causal_high_ns`] and still be consistent with what was seen. `causal_bound_ns` is the

@@ -1,7 +1,7 @@
 """The serial link to the trigger microcontroller: handshake, commands, events, clock sync.
 
 `McuLink` opens a pyserial URL (a device path, a pty, ``loop://``, ``socket://HOST:PORT``),
-reads it on a thread of its own that feeds a `framing.FrameDecoder`, and offers the
+reads it on a thread of its own that feeds a `packets.PacketDecoder`, and offers the
 firmware's verbs as blocking calls with timeouts, in the manner of Klipper's
 `klippy/serialhdl.py`:
 
@@ -14,8 +14,8 @@ firmware's verbs as blocking calls with timeouts, in the manner of Klipper's
   a time (requests are serialised; the microcontroller's receive buffer is small), each
   waiting for its ACK or reply, or for the ERROR naming its sequence number
   (`FirmwareRejected`).
-* Sequence numbers (see `messages`): every host frame takes the next number. When a reply
-  does not come, the same frame (same number) is sent again: if the first copy was lost the
+* Sequence numbers (see `messages`): every host packet takes the next number. When a reply
+  does not come, the same packet (same number) is sent again: if the first copy was lost the
   firmware acts on the second; if only the answer was lost the firmware answers the copy with
   ``ERROR(OUT_OF_SEQUENCE, expected = number + 1)``: it took the first copy, so no command is
   taken twice. Its outcome went with the lost answer: CONFIGURE, RETIME, DISARM,
@@ -24,21 +24,21 @@ firmware's verbs as blocking calls with timeouts, in the manner of Klipper's
   OUT_OF_SEQUENCE means the two sides disagree: the link resends HELLO (which resets the
   firmware's expectation and re-checks its identity) and sends the command again under a new
   number. PING is never resent: a late PONG would pair with the wrong send time.
-* TRIGGER, STOPPED and BOOT frames become events (`TriggerEvent`, `StoppedEvent`,
+* TRIGGER, STOPPED and BOOT packets become events (`TriggerEvent`, `StoppedEvent`,
   `BootEvent`) on a bounded queue (`next_event`, `events`); when it is full the oldest event
   is dropped and counted. A TRIGGER's tick is converted to host time with the clock fit at
   the moment it arrives. A BOOT means the microcontroller restarted: its clock fit is
   dropped and the next request begins with a new handshake.
-* Garbage on the line costs no valid frame (the decoder resyncs), but for the rare one that
-  garbage completes into a frame with a good CRC (a frame cut just before its last byte,
-  when that byte is 0xA5, takes the next frame's start byte). When the line has been quiet
-  for `quiet_s` with bytes held, a whole frame already behind the held start byte is taken
-  (`FrameDecoder.recover_behind_partial`), so a start byte from noise holds back a valid
-  frame by `quiet_s` at most; a partial frame with nothing whole behind it is kept, because
+* Garbage on the line costs no valid packet (the decoder resyncs), but for the rare one that
+  garbage completes into a packet with a good CRC (a packet cut just before its last byte,
+  when that byte is 0xA5, takes the next packet's start byte). When the line has been quiet
+  for `quiet_s` with bytes held, a whole packet already behind the held start byte is taken
+  (`PacketDecoder.recover_behind_partial`), so a start byte from noise holds back a valid
+  packet by `quiet_s` at most; a partial packet with nothing whole behind it is kept, because
   its rest may be late (a loaded host, a USB adapter's latency timer, a simulator that fell
-  behind), and is given up (`FrameDecoder.give_up_partial`) only after `partial_timeout_s`
-  of silence, when its sender has stopped (a reset in mid-frame).
-* `statistics()` counts frames, CRC and length errors, skipped bytes, firmware frames lost
+  behind), and is given up (`PacketDecoder.give_up_partial`) only after `partial_timeout_s`
+  of silence, when its sender has stopped (a reset in mid-packet).
+* `statistics()` counts packets, CRC and length errors, skipped bytes, firmware packets lost
   (gaps in its sequence numbers), round trips and their times, resends, resyncs, timeouts.
 
 Every blocking call takes a timeout (seconds). Sends are thread-safe. Times are host
@@ -64,7 +64,6 @@ from typing import Any
 import serial
 
 from firmware_bridge.clocksync import ClockEstimate, ClockNotSynced, ClockSync, RoundTrip
-from firmware_bridge.framing import DecodedFrame, FrameDecoder, encode
 from firmware_bridge.messages import (
     BY_NAME,
     PROTOCOL_VERSION,
@@ -75,8 +74,9 @@ from firmware_bridge.messages import (
     StopReason,
     TriggerSource,
 )
+from firmware_bridge.packets import DecodedPacket, PacketDecoder, encode
 
-_FRAME_OVERHEAD = 6
+_PACKET_OVERHEAD = 6
 """Start byte, LEN, SEQ, ID and the two CRC bytes."""
 
 
@@ -161,7 +161,7 @@ class TriggerEvent:
             None when no fit existed yet.
         uncertainty_ns: 1 sigma statistical error of `host_time_ns` (ns; None without a fit);
             see `clocksync` for what it leaves out.
-        received_ns: host time at which the frame was decoded (ns).
+        received_ns: host time at which the packet was decoded (ns).
     """
 
     trigger_seq: int
@@ -179,7 +179,7 @@ class StoppedEvent:
     Attributes:
         reason: why (`StopReason`; an int for a reason this host does not know).
         triggers: pulses since ARM.
-        received_ns: host time at which the frame was decoded (ns).
+        received_ns: host time at which the packet was decoded (ns).
     """
 
     reason: StopReason | int
@@ -193,7 +193,7 @@ class BootEvent:
 
     Attributes:
         cause: what reset it (`ResetCause`; an int for a cause this host does not know).
-        received_ns: host time at which the frame was decoded (ns).
+        received_ns: host time at which the packet was decoded (ns).
     """
 
     cause: ResetCause | int
@@ -223,36 +223,36 @@ class LinkStatistics:
     """Counters of one link since it was opened (a snapshot).
 
     Attributes:
-        frames_sent: frames written, resends included.
-        frames_received: frames with a good CRC.
+        packets_sent: packets written, resends included.
+        packets_received: packets with a good CRC.
         crc_errors, length_errors, skipped_bytes: the decoder's counts of line damage.
-        partials_given_up: times a partial frame was dropped after `partial_timeout_s` of
+        partials_given_up: times a partial packet was dropped after `partial_timeout_s` of
             silence.
-        unusable_frames: frames with a good CRC but an unknown id or a payload that does not
+        unusable_packets: packets with a good CRC but an unknown id or a payload that does not
             fit, or sent in the wrong direction.
-        lost_frames: firmware frames missing from its sequence numbers.
+        lost_packets: firmware packets missing from its sequence numbers.
         round_trips: completed request/answer pairs.
         rtt_min_ns, rtt_last_ns, rtt_max_ns: their round-trip times (ns; 0 before any).
-        resends: frames sent again under the same number after no answer.
+        resends: packets sent again under the same number after no answer.
         resyncs: HELLOs sent to resynchronise after OUT_OF_SEQUENCE or a firmware restart.
         timeouts: requests that got no answer in time.
-        errors: ERROR frames received, by code name.
-        unmatched_replies: frames that answer no waiting request (late or duplicate answers,
+        errors: ERROR packets received, by code name.
+        unmatched_replies: packets that answer no waiting request (late or duplicate answers,
             and the ERRORs the firmware sends about damaged bytes).
         events_dropped: events pushed out of the full queue.
         sync_failures: background pings that failed.
         clock_samples_rejected: round trips the clock fit rejected as outliers.
-        boots: BOOT frames received.
+        boots: BOOT packets received.
     """
 
-    frames_sent: int = 0
-    frames_received: int = 0
+    packets_sent: int = 0
+    packets_received: int = 0
     crc_errors: int = 0
     length_errors: int = 0
     skipped_bytes: int = 0
     partials_given_up: int = 0
-    unusable_frames: int = 0
-    lost_frames: int = 0
+    unusable_packets: int = 0
+    lost_packets: int = 0
     round_trips: int = 0
     rtt_min_ns: int = 0
     rtt_last_ns: int = 0
@@ -275,7 +275,7 @@ class _Pending:
     reply: str
     token: int | None = None
     sent_ns: int = 0
-    answer: DecodedFrame | None = None
+    answer: DecodedPacket | None = None
     answered_ns: int = 0
     done: threading.Event = field(default_factory=threading.Event)
 
@@ -294,17 +294,17 @@ _EVENTS = frozenset({"TRIGGER", "STOPPED", "BOOT"})
 _REPEATABLE = frozenset({"CONFIGURE", "RETIME", "DISARM", "SET_DEAD_MAN", "GET_POSITION"})
 """Commands that do the same when taken twice in a row."""
 _LINE_ERRORS = frozenset({ErrorCode.BAD_CRC, ErrorCode.BAD_LENGTH})
-"""ERRORs about damaged bytes: the firmware cannot know whose frame they were (their sequence
-number is the damaged frame's byte, or 0), so they answer no request; the request's own
+"""ERRORs about damaged bytes: the firmware cannot know whose packet they were (their sequence
+number is the damaged packet's byte, or 0), so they answer no request; the request's own
 resend covers a command of ours that was damaged."""
 
 
-def _frame_bytes(name: str) -> int:
-    return _FRAME_OVERHEAD + BY_NAME[name].payload_size
+def _packet_bytes(name: str) -> int:
+    return _PACKET_OVERHEAD + BY_NAME[name].payload_size
 
 
 def wire_asymmetry_ns(byte_ns: float) -> float:
-    """How far a PING's stamp lies after its round trip's midpoint because of the two frames'
+    """How far a PING's stamp lies after its round trip's midpoint because of the two packets'
     lengths on the wire (ns; negative: before it), for `ClockSync(asymmetry_ns=...)`.
 
     The firmware stamps a PING at its last byte; the PONG's last byte is what the host
@@ -313,7 +313,7 @@ def wire_asymmetry_ns(byte_ns: float) -> float:
     half their difference before the midpoint. Latencies that differ by direction (USB
     polling, a pty bridge's polling) are not in it.
     """
-    return 0.5 * (_frame_bytes("PING") - _frame_bytes("PONG")) * byte_ns
+    return 0.5 * (_packet_bytes("PING") - _packet_bytes("PONG")) * byte_ns
 
 
 def _enum_or_int(kind: type, value: int) -> Any:
@@ -338,9 +338,9 @@ class McuLink:
         expected_table_hash: the message table's hash this host was built from.
         clock_ns: the host clock (ns) for send/receive stamps and event times.
         quiet_s: how long the line must be silent, with bytes held, before the decoder looks
-            behind the held start byte for a whole frame (s); the read timeout.
-        partial_timeout_s: how long the line must be silent before a partial frame with
-            nothing whole behind it is given up (s). Longer than any gap inside one frame
+            behind the held start byte for a whole packet (s); the read timeout.
+        partial_timeout_s: how long the line must be silent before a partial packet with
+            nothing whole behind it is given up (s). Longer than any gap inside one packet
             on this kind of line.
         write_timeout_s: limit of one write (s).
         event_queue_size: events kept until read; the oldest is dropped when full.
@@ -393,7 +393,7 @@ class McuLink:
         self._initial_ping_gap_s = float(initial_ping_gap_s)
         self._wire_byte_ns = wire_byte_ns
         self._clock = clock_sync
-        self._decoder = FrameDecoder()
+        self._decoder = PacketDecoder()
         self._stats = LinkStatistics()
         self._errors: Counter[str] = Counter()
         self._state_lock = threading.Lock()
@@ -519,7 +519,7 @@ class McuLink:
 
         Raises:
             FirmwareRejected: e.g. BAD_STATE while armed, BAD_VALUE for values it refuses.
-            FirmwareTimeout, NotConnected, LinkClosed; FramingError (a ValueError) for a value
+            FirmwareTimeout, NotConnected, LinkClosed; PacketError (a ValueError) for a value
             its field cannot hold.
         """
         self._request(
@@ -579,7 +579,7 @@ class McuLink:
             FirmwareRejected: BAD_STATE when not armed (also after the run ended by its
                 count or the dead-man), BAD_VALUE for a period or divisor the firmware
                 refuses; the running trigger is then unchanged.
-            FirmwareTimeout, NotConnected, LinkClosed; FramingError (a ValueError) for a value
+            FirmwareTimeout, NotConnected, LinkClosed; PacketError (a ValueError) for a value
             its field cannot hold.
         """
         self._request(
@@ -608,12 +608,12 @@ class McuLink:
         return Position(values["position"], values["tick"], self._host_time(values["tick"])[0])
 
     def set_dead_man(self, timeout_ms: int, *, timeout_s: float = 0.5) -> None:
-        """Make the firmware stop triggering when no valid frame arrives for `timeout_ms`
-        (0 = off). The background sync's pings count as frames; without it, send something
+        """Make the firmware stop triggering when no valid packet arrives for `timeout_ms`
+        (0 = off). The background sync's pings count as packets; without it, send something
         (e.g. `ping`) more often than that.
 
         Raises:
-            FirmwareRejected, FirmwareTimeout, NotConnected, LinkClosed; FramingError for a
+            FirmwareRejected, FirmwareTimeout, NotConnected, LinkClosed; PacketError for a
             timeout above 65535 ms.
         """
         self._request("SET_DEAD_MAN", {"timeout_ms": timeout_ms}, timeout_s)
@@ -674,7 +674,7 @@ class McuLink:
             clock = self._clock
             return replace(
                 self._stats,
-                frames_received=decoder.frames,
+                packets_received=decoder.packets,
                 crc_errors=decoder.crc_errors,
                 length_errors=decoder.length_errors,
                 skipped_bytes=decoder.skipped_bytes,
@@ -734,17 +734,17 @@ class McuLink:
         self._tx_seq = (seq + 1) & 0xFF
         return seq
 
-    def _send(self, frame: bytes) -> int:
+    def _send(self, packet: bytes) -> int:
         self._check_open()
         with self._write_lock:
             sent_ns = self._clock_ns()
             try:
-                self._port.write(frame)
+                self._port.write(packet)
                 self._port.flush()
             except (serial.SerialException, OSError) as exc:
                 self._failure = exc
                 raise LinkClosed(f"{self.url}: write failed: {exc}") from exc
-        self._count("frames_sent")
+        self._count("packets_sent")
         return sent_ns
 
     def _await(self, pending: _Pending, until: float) -> bool:
@@ -757,18 +757,18 @@ class McuLink:
 
     def _hello(self, deadline: float, interval_s: float) -> FirmwareInfo:
         seq = self._next_seq()
-        frame = encode("HELLO", seq)
+        packet = encode("HELLO", seq)
         pending = _Pending(seq, "HELLO", "HELLO_REPLY")
         with self._state_lock:
             self._pending = pending
-        pending.sent_ns = self._send(frame)
+        pending.sent_ns = self._send(packet)
         while True:
             until = min(deadline, time.monotonic() + interval_s)
             pending.done.wait(max(0.0, until - time.monotonic()))
             self._check_open()
             if pending.answer is not None or time.monotonic() >= deadline:
                 break
-            self._send(frame)
+            self._send(packet)
             self._count("resends")
         with self._state_lock:
             if self._pending is pending:
@@ -825,13 +825,13 @@ class McuLink:
             resynced = False
             boots = self._stats.boots
             seq = self._next_seq()
-            frame = encode(name, seq, **values)
+            packet = encode(name, seq, **values)
             copies = 0
             while True:
                 pending = _Pending(seq, name, reply, token)
                 with self._state_lock:
                     self._pending = pending
-                pending.sent_ns = self._send(frame)
+                pending.sent_ns = self._send(packet)
                 answered = self._await(pending, min(deadline, time.monotonic() + attempt_s))
                 if not answered:
                     if copies + 1 < attempts and time.monotonic() < deadline:
@@ -853,7 +853,7 @@ class McuLink:
                         if name not in _REPEATABLE:
                             raise AnswerLost(f"{name} was taken but its answer was lost")
                         seq = self._next_seq()
-                        frame = encode(name, seq, **values)
+                        packet = encode(name, seq, **values)
                         continue
                     if resynced:
                         raise FirmwareRejected(name, code, detail)
@@ -861,7 +861,7 @@ class McuLink:
                     self._count("resyncs")
                     self._hello(deadline, 0.05)
                     seq = self._next_seq()
-                    frame = encode(name, seq, **values)
+                    packet = encode(name, seq, **values)
                     copies = 0
                     continue
                 raise FirmwareRejected(name, code, detail)
@@ -909,18 +909,18 @@ class McuLink:
                 last_byte_ns = moment_ns
             with self._state_lock:
                 if data:
-                    frames = self._decoder.feed(data)
+                    packets = self._decoder.feed(data)
                 elif not self._decoder.pending():
                     continue
                 elif moment_ns - last_byte_ns < self._partial_timeout_ns:
-                    frames = self._decoder.recover_behind_partial()
+                    packets = self._decoder.recover_behind_partial()
                 else:
-                    frames = self._decoder.give_up_partial()
+                    packets = self._decoder.give_up_partial()
                     self._stats = replace(
                         self._stats, partials_given_up=self._stats.partials_given_up + 1
                     )
-                for frame in frames:
-                    self._dispatch(frame, now)
+                for packet in packets:
+                    self._dispatch(packet, now)
 
     def _fail(self, exc: BaseException) -> None:
         with self._events_ready:
@@ -930,57 +930,57 @@ class McuLink:
         if pending is not None:
             pending.done.set()
 
-    def _dispatch(self, frame: DecodedFrame, now: int) -> None:
-        """Handle one decoded frame; runs on the reader thread with the state lock held."""
+    def _dispatch(self, packet: DecodedPacket, now: int) -> None:
+        """Handle one decoded packet; runs on the reader thread with the state lock held."""
         stats = self._stats
-        if frame.problem or frame.message is None or frame.message.direction is Direction.TO_MCU:
-            self._stats = replace(stats, unusable_frames=stats.unusable_frames + 1)
+        if packet.problem or packet.message is None or packet.message.direction is Direction.TO_MCU:
+            self._stats = replace(stats, unusable_packets=stats.unusable_packets + 1)
             return
-        if frame.name == "BOOT":
-            self._rx_seq = frame.seq
+        if packet.name == "BOOT":
+            self._rx_seq = packet.seq
         elif self._rx_seq is not None:
-            gap = (frame.seq - self._rx_seq - 1) & 0xFF
+            gap = (packet.seq - self._rx_seq - 1) & 0xFF
             if gap:
-                self._stats = replace(stats, lost_frames=stats.lost_frames + gap)
-            self._rx_seq = frame.seq
+                self._stats = replace(stats, lost_packets=stats.lost_packets + gap)
+            self._rx_seq = packet.seq
         else:
-            self._rx_seq = frame.seq
-        if frame.name in _EVENTS:
-            self._push_event(frame, now)
+            self._rx_seq = packet.seq
+        if packet.name in _EVENTS:
+            self._push_event(packet, now)
             return
-        if frame.name == "ERROR":
-            code = _enum_or_int(ErrorCode, frame.values["code"])
+        if packet.name == "ERROR":
+            code = _enum_or_int(ErrorCode, packet.values["code"])
             self._errors[code.name if isinstance(code, ErrorCode) else str(code)] += 1
         pending = self._pending
-        if pending is None or pending.answer is not None or not self._answers(pending, frame):
+        if pending is None or pending.answer is not None or not self._answers(pending, packet):
             self._stats = replace(self._stats, unmatched_replies=self._stats.unmatched_replies + 1)
             return
-        pending.answer = frame
+        pending.answer = packet
         pending.answered_ns = now
         pending.done.set()
 
     @staticmethod
-    def _answers(pending: _Pending, frame: DecodedFrame) -> bool:
-        values = frame.values
-        if frame.name == "ERROR":
+    def _answers(pending: _Pending, packet: DecodedPacket) -> bool:
+        values = packet.values
+        if packet.name == "ERROR":
             return values["code"] not in _LINE_ERRORS and values["rejected_seq"] == pending.seq
-        if frame.name != pending.reply:
+        if packet.name != pending.reply:
             return False
-        if frame.name == "ACK":
+        if packet.name == "ACK":
             return values["acked_seq"] == pending.seq
-        if frame.name == "PONG":
+        if packet.name == "PONG":
             return values["token"] == pending.token
         return True
 
-    def _push_event(self, frame: DecodedFrame, now: int) -> None:
-        values = frame.values
+    def _push_event(self, packet: DecodedPacket, now: int) -> None:
+        values = packet.values
         event: Event
-        if frame.name == "TRIGGER":
+        if packet.name == "TRIGGER":
             host_ns, sigma = self._host_time(values["tick"])
             event = TriggerEvent(
                 values["trigger_seq"], values["tick"], values["position"], host_ns, sigma, now
             )
-        elif frame.name == "STOPPED":
+        elif packet.name == "STOPPED":
             event = StoppedEvent(
                 _enum_or_int(StopReason, values["reason"]), values["triggers"], now
             )

@@ -5,7 +5,7 @@ generated from it (`python -m firmware_bridge.gen_header`), and a test checks th
 in the tree is what this table generates. The handshake returns the table's hash
 (`TABLE_HASH`), so a host refuses to run against firmware built from another table.
 
-Wire format of a frame (both directions)::
+Wire format of a packet (both directions)::
 
     0xA5 | LEN | SEQ | ID | PAYLOAD (LEN - 2 bytes) | CRC16 (little-endian)
 
@@ -15,11 +15,11 @@ Numbers in payloads are little-endian; `u8 u16 u32 u64 i32` as in C. A receiver 
 bad length or CRC drops the start byte only and looks for the next 0xA5, so garbage never
 desynchronises the stream.
 
-Sequence numbers: each side numbers its own frames, +1 mod 256 per frame. The firmware
-expects the host's next number; a frame with another number is rejected with
+Sequence numbers: each side numbers its own packets, +1 mod 256 per packet. The firmware
+expects the host's next number; a packet with another number is rejected with
 `ERROR(OUT_OF_SEQUENCE, expected)` and not acted on. `HELLO` is accepted with any number and
 sets the expectation to its number + 1 (how a host starts or resynchronises). The host sees
-gaps in the firmware's numbers as lost frames.
+gaps in the firmware's numbers as lost packets.
 
 Clock: the firmware's tick is its Timer1 at F_CPU / 8 (2 MHz on a 16 MHz ATmega328P),
 extended in software to 64 bits. Every time on the wire is in ticks.
@@ -71,7 +71,7 @@ class Message:
 
 
 class ErrorCode(enum.IntEnum):
-    """`ERROR.code`: why the firmware rejected a frame or a command."""
+    """`ERROR.code`: why the firmware rejected a packet or a command."""
 
     BAD_CRC = 1
     BAD_LENGTH = 2
@@ -134,7 +134,7 @@ MESSAGES: tuple[Message, ...] = (
         "SET_DEAD_MAN",
         D_MCU,
         (("timeout_ms", "u16"),),
-        "stop triggering when no valid frame arrives for this long; 0 = off",
+        "stop triggering when no valid packet arrives for this long; 0 = off",
     ),
     Message(
         0x08,
@@ -195,7 +195,7 @@ MESSAGES: tuple[Message, ...] = (
         "ERROR",
         D_HOST,
         (("code", "u8"), ("detail", "u8"), ("rejected_seq", "u8")),
-        "a frame or command rejected (ErrorCode); detail: the expected sequence number for "
+        "a packet or command rejected (ErrorCode); detail: the expected sequence number for "
         "OUT_OF_SEQUENCE, the message id otherwise",
     ),
 )

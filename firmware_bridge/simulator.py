@@ -3,7 +3,7 @@
     elf = build_firmware(build_dir); harness = build_harness(build_dir)
     with SimulatedMcu(elf, harness, tmp_path, hold=True) as mcu:
         link = mcu.open_serial(timeout=0.05)     # opens the pty, then lets the CPU run
-        link.write(framing.encode("HELLO", 0))
+        link.write(packets.encode("HELLO", 0))
         ...
         edges = mcu.edges()                      # [(sim_time_ns, "PB1", level), ...]
         walls = mcu.edge_wall_times()            # [(sim_time_ns, level, wall_ns), ...]
@@ -13,7 +13,7 @@ pty link to appear, and exposes `.port` (a path pyserial opens like a serial dev
 baud rate is ignored). The harness paces simulated time to the wall clock (`speed=1.0`;
 `speed=0` runs unthrottled), so ticks are about wall time and host-side time-outs and clock
 sync behave as against hardware; timestamps that must be exact are read in simulated time,
-from the edge log or the ticks in the frames, never from the host's clock.
+from the edge log or the ticks in the packets, never from the host's clock.
 
 pyserial flushes input when it opens a port, so a BOOT sent before the host opened the pty
 is lost. With `hold=True` the CPU stays in reset until `release()` (or `open_serial()`,

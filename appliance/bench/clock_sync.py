@@ -236,7 +236,7 @@ def measure_clock_sync(duration_s: float, work_dir: Path) -> dict[str, Any]:
         "link": {
             "timeouts": statistics.timeouts,
             "crc_errors": statistics.crc_errors,
-            "lost_frames": statistics.lost_frames,
+            "lost_packets": statistics.lost_packets,
             "clock_samples_rejected": statistics.clock_samples_rejected,
         },
         "ground_truth": (

@@ -13,11 +13,11 @@ simulated time (exact to the CPU cycle, 62.5 ns, for compare-made edges):
 
 and for each: the period's mean, standard deviation and largest |deviation| from the
 commanded period (for the encoder, divisor / rate), the largest pulse width error, and the
-largest difference between a TRIGGER frame's tick (x 500 ns, plus the constant offset from
+largest difference between a TRIGGER packet's tick (x 500 ns, plus the constant offset from
 reset to Timer1's start) and its rising edge. For the encoder case also the latency from
 the encoder count that reached the divisor (its simulated time is known from the schedule)
 to the rising edge. While a case runs the host sends a PING every 2 ms (except in the
-"no host traffic" case), so the UART interrupts and the TRIGGER frames' transmission
+"no host traffic" case), so the UART interrupts and the TRIGGER packets' transmission
 compete with the trigger interrupts as they would in use.
 
 Period-mode edges are made by the compare hardware and do not move with interrupt load;
@@ -70,18 +70,18 @@ ENCODER_CASES = (
 
 
 class _Host:
-    """Just enough of a host: numbered frames out, frames in."""
+    """Just enough of a host: numbered packets out, packets in."""
 
     def __init__(self, port: Any) -> None:
-        from firmware_bridge.framing import FrameDecoder
+        from firmware_bridge.packets import PacketDecoder
 
         self.port = port
-        self.decoder = FrameDecoder()
+        self.decoder = PacketDecoder()
         self.seq = 0
-        self.frames: list[Any] = []
+        self.packets: list[Any] = []
 
     def send(self, name: str, **values: Any) -> int:
-        from firmware_bridge.framing import encode
+        from firmware_bridge.packets import encode
 
         seq = self.seq
         self.port.write(encode(name, seq, **values))
@@ -91,17 +91,17 @@ class _Host:
     def poll(self) -> None:
         data = self.port.read(max(1, self.port.in_waiting))
         if data:
-            self.frames.extend(self.decoder.feed(data))
+            self.packets.extend(self.decoder.feed(data))
 
     def wait(self, name: str, timeout_s: float, *, ping_every_s: float = 0.0) -> Any:
         deadline = time.monotonic() + timeout_s
         next_ping = time.monotonic()
         seen = 0
         while time.monotonic() < deadline:
-            for frame in self.frames[seen:]:
-                if frame.name == name:
-                    return frame
-            seen = len(self.frames)
+            for packet in self.packets[seen:]:
+                if packet.name == name:
+                    return packet
+            seen = len(self.packets)
             if ping_every_s and time.monotonic() >= next_ping:
                 self.send("PING", token=self.seq)
                 next_ping += ping_every_s
@@ -112,11 +112,11 @@ class _Host:
         seq = self.send(name, **values)
         deadline = time.monotonic() + 2.0
         while time.monotonic() < deadline:
-            for frame in self.frames:
-                if frame.values.get("acked_seq") == seq and frame.name == "ACK":
+            for packet in self.packets:
+                if packet.values.get("acked_seq") == seq and packet.name == "ACK":
                     return
-                if frame.name == "ERROR" and frame.values.get("rejected_seq") == seq:
-                    raise RuntimeError(f"{name} refused: {frame.values}")
+                if packet.name == "ERROR" and packet.values.get("rejected_seq") == seq:
+                    raise RuntimeError(f"{name} refused: {packet.values}")
             self.poll()
         raise TimeoutError(f"no ACK for {name}")
 
@@ -173,7 +173,7 @@ def _run_case(
     rises_falls = [
         (t0, t1) for (t0, l0), (t1, l1) in itertools.pairwise(edges) if l0 == 1 and l1 == 0
     ]
-    triggers = [f.values for f in host.frames if f.name == "TRIGGER"]
+    triggers = [f.values for f in host.packets if f.name == "TRIGGER"]
     rises = [rise for rise, _ in rises_falls]
     periods = [b - a - nominal_period_ns for a, b in itertools.pairwise(rises)]
     if source:
@@ -184,8 +184,8 @@ def _run_case(
     stamp_errors = [offset - offsets[0] for offset in offsets]
     case: dict[str, Any] = {
         "pulses": len(rises_falls),
-        "trigger_frames": len(triggers),
-        "trigger_frames_lost": len(rises_falls) - len(triggers),
+        "trigger_packets": len(triggers),
+        "trigger_packets_lost": len(rises_falls) - len(triggers),
         "stopped": dict(stopped.values),
         "nominal_period_ns": nominal_period_ns,
         "pulse_width_ns": width_ticks * TICK_NS,
@@ -276,7 +276,7 @@ def format_table(figures: Mapping[str, Any]) -> str:
         f"encoder mode {figures['verdict_by_mode']['encoder']}; "
         f"worst |period deviation| {figures['worst_period_deviation_ns']:.1f} ns)",
         "",
-        "| case | pulses | TRIGGER frames lost | period std | period max dev | width max err "
+        "| case | pulses | TRIGGER packets lost | period std | period max dev | width max err "
         "| tick vs edge max | encoder latency mean / max |",
         "|---|---|---|---|---|---|---|---|",
     ]
@@ -286,7 +286,7 @@ def format_table(figures: Mapping[str, Any]) -> str:
             f"{latency['mean']:.0f} / {latency['max_abs']:.0f}" if latency is not None else "-"
         )
         lines.append(
-            f"| {name} | {case['pulses']} | {case['trigger_frames_lost']} "
+            f"| {name} | {case['pulses']} | {case['trigger_packets_lost']} "
             f"| {case['period_deviation_ns']['std']:.1f} "
             f"| {case['period_deviation_ns']['max_abs']:.1f} "
             f"| {case['width_error_ns']['max_abs']:.1f} "

@@ -38,7 +38,7 @@
 #define ARM_LEAD_TICKS 400UL
 #define ENCODER_LEAD_TICKS 32UL
 
-/* A frame whose bytes stop arriving for this long is dropped (10 ms). */
+/* A packet whose bytes stop arriving for this long is dropped (10 ms). */
 #define INTERBYTE_TIMEOUT_TICKS (TICK_HZ / 100UL)
 
 /* Ring sizes: powers of two. RX entries carry a 16-bit receive stamp (TCNT1). */

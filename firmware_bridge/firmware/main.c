@@ -7,7 +7,7 @@
  * reports it, and stops on its own when the host goes quiet (dead-man). Modules:
  *   clock.c     64-bit tick (Timer1 at 2 MHz), 1 kHz wake-up (Timer2)
  *   uart.c      UART0 rings, per-byte receive stamps
- *   protocol.c  frame parser, commands, replies, dead-man
+ *   protocol.c  packet parser, commands, replies, dead-man
  *   trigger.c   pulse engine on OC1A (period or encoder mode)
  *   encoder.c   x4 quadrature on INT0 / INT1
  * The message table is messages.h, generated from firmware_bridge/messages.py.

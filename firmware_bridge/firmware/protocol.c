@@ -1,8 +1,8 @@
 /*
- * protocol.c: frame parser, command dispatch and frame sending (see protocol.h).
+ * protocol.c: packet parser, command dispatch and packet sending (see protocol.h).
  *
- * Frames are built whole in a stack buffer and copied into the transmit ring only when it
- * has room for all of them, so the ring never holds a partial frame.
+ * Packets are built whole in a stack buffer and copied into the transmit ring only when it
+ * has room for all of them, so the ring never holds a partial packet.
  */
 #include "protocol.h"
 
@@ -16,16 +16,16 @@
 #include "trigger.h"
 #include "uart.h"
 
-#define FRAME_MAX (MSG_MAX_LEN + 4)
-/* Room kept free for the reply to the frame being parsed. */
-#define REPLY_ROOM FRAME_MAX
-#define ERROR_FRAME (MSG_SIZE_ERROR + 6)
+#define PACKET_MAX (MSG_MAX_LEN + 4)
+/* Room kept free for the reply to the packet being parsed. */
+#define REPLY_ROOM PACKET_MAX
+#define ERROR_PACKET (MSG_SIZE_ERROR + 6)
 
 /* The parser's bytes are window[begin ... end): received bytes are appended in batches and
  * parsed once per batch; dropping bytes moves `begin` only, and the window is moved back
- * to its start when less than a frame's room is left, so a resync that drops one byte at a
+ * to its start when less than a packet's room is left, so a resync that drops one byte at a
  * time costs no copying. */
-#define WINDOW (2 * FRAME_MAX)
+#define WINDOW (2 * PACKET_MAX)
 static uint8_t window[WINDOW];
 static uint16_t stamps[WINDOW];
 static uint8_t begin;
@@ -44,21 +44,21 @@ static uint16_t crc16(const uint8_t *data, uint8_t length)
     return crc;
 }
 
-static uint8_t send_frame(uint8_t id, const void *payload, uint8_t size)
+static uint8_t send_packet(uint8_t id, const void *payload, uint8_t size)
 {
-    uint8_t frame[FRAME_MAX];
+    uint8_t packet[PACKET_MAX];
     uint8_t total = (uint8_t)(size + 6);
     if (uart_tx_free() < total)
         return 0;
-    frame[0] = MSG_START_BYTE;
-    frame[1] = (uint8_t)(size + 2);
-    frame[2] = tx_seq;
-    frame[3] = id;
-    memcpy(&frame[4], payload, size);
-    uint16_t crc = crc16(&frame[1], (uint8_t)(size + 3));
-    frame[4 + size] = (uint8_t)crc;
-    frame[5 + size] = (uint8_t)(crc >> 8);
-    uart_write(frame, total);
+    packet[0] = MSG_START_BYTE;
+    packet[1] = (uint8_t)(size + 2);
+    packet[2] = tx_seq;
+    packet[3] = id;
+    memcpy(&packet[4], payload, size);
+    uint16_t crc = crc16(&packet[1], (uint8_t)(size + 3));
+    packet[4 + size] = (uint8_t)crc;
+    packet[5 + size] = (uint8_t)(crc >> 8);
+    uart_write(packet, total);
     tx_seq++;
     return 1;
 }
@@ -66,27 +66,27 @@ static uint8_t send_frame(uint8_t id, const void *payload, uint8_t size)
 static void send_error(uint8_t code, uint8_t detail, uint8_t seq)
 {
     msg_error_t error = {.code = code, .detail = detail, .rejected_seq = seq};
-    send_frame(MSG_ID_ERROR, &error, sizeof error);
+    send_packet(MSG_ID_ERROR, &error, sizeof error);
 }
 
 /* Best effort: only when the transmit ring has room beyond what replies may need, so a
- * stream of garbage never holds up the answers to the valid frames in it. */
+ * stream of garbage never holds up the answers to the valid packets in it. */
 static void framing_error(uint8_t code, uint8_t detail, uint8_t seq)
 {
-    if (uart_tx_free() >= 2 * REPLY_ROOM + ERROR_FRAME)
+    if (uart_tx_free() >= 2 * REPLY_ROOM + ERROR_PACKET)
         send_error(code, detail, seq);
 }
 
 static void send_ack(uint8_t seq)
 {
     msg_ack_t ack = {.acked_seq = seq};
-    send_frame(MSG_ID_ACK, &ack, sizeof ack);
+    send_packet(MSG_ID_ACK, &ack, sizeof ack);
 }
 
 void protocol_send_boot(uint8_t cause)
 {
     msg_boot_t boot = {.cause = cause};
-    send_frame(MSG_ID_BOOT, &boot, sizeof boot);
+    send_packet(MSG_ID_BOOT, &boot, sizeof boot);
 }
 
 static int16_t payload_size(uint8_t id)
@@ -110,14 +110,14 @@ static void command(uint8_t seq, uint8_t id, const uint8_t *payload, uint64_t re
         msg_pong_t pong;
         memcpy(&pong.token, payload, sizeof pong.token);
         pong.tick = received;
-        send_frame(MSG_ID_PONG, &pong, sizeof pong);
+        send_packet(MSG_ID_PONG, &pong, sizeof pong);
         return;
     }
     case MSG_ID_GET_POSITION: {
         msg_position_t reply;
         reply.position = encoder_position();
         reply.tick = clock_now();
-        send_frame(MSG_ID_POSITION, &reply, sizeof reply);
+        send_packet(MSG_ID_POSITION, &reply, sizeof reply);
         return;
     }
     case MSG_ID_CONFIGURE: {
@@ -162,10 +162,10 @@ static void hello(void)
         .tick_hz = TICK_HZ,
     };
     reply.tick = clock_now();
-    send_frame(MSG_ID_HELLO_REPLY, &reply, sizeof reply);
+    send_packet(MSG_ID_HELLO_REPLY, &reply, sizeof reply);
 }
 
-static void frame(uint8_t seq, uint8_t id, const uint8_t *payload, uint8_t size, uint16_t stamp)
+static void handle_packet(uint8_t seq, uint8_t id, const uint8_t *payload, uint8_t size, uint16_t stamp)
 {
     uint64_t received = clock_extend16(stamp, clock_now());
     if (id == MSG_ID_HELLO) {
@@ -203,8 +203,8 @@ static void drop(uint8_t count)
         begin = end = 0;
 }
 
-/* Move the window's bytes to its start; afterwards there is room for at least FRAME_MAX
- * more (a waiting frame or candidate never spans more than FRAME_MAX). */
+/* Move the window's bytes to its start; afterwards there is room for at least PACKET_MAX
+ * more (a waiting packet or candidate never spans more than PACKET_MAX). */
 static void compact(void)
 {
     uint8_t fill = (uint8_t)(end - begin);
@@ -214,9 +214,9 @@ static void compact(void)
     end = fill;
 }
 
-/* Consume what the window holds: frames are handled, garbage answered and dropped. Returns
- * 1 when a complete frame has to wait for transmit room for its reply, 0 when the window is
- * empty or holds the start of a frame still arriving. */
+/* Consume what the window holds: packets are handled, garbage answered and dropped. Returns
+ * 1 when a complete packet has to wait for transmit room for its reply, 0 when the window is
+ * empty or holds the start of a packet still arriving. */
 static uint8_t parse(void)
 {
     for (;;) {
@@ -243,7 +243,7 @@ static uint8_t parse(void)
         }
         if (uart_tx_free() < REPLY_ROOM)
             return 1;
-        frame(bytes[2], bytes[3], &bytes[4], (uint8_t)(length - 2), stamps[begin + total - 1]);
+        handle_packet(bytes[2], bytes[3], &bytes[4], (uint8_t)(length - 2), stamps[begin + total - 1]);
         drop(total);
     }
 }
@@ -266,12 +266,12 @@ static void send_output(void)
 {
     msg_trigger_t event;
     while (uart_tx_free() >= 2 * REPLY_ROOM + MSG_SIZE_TRIGGER + 6 && trigger_peek_event(&event)) {
-        send_frame(MSG_ID_TRIGGER, &event, sizeof event);
+        send_packet(MSG_ID_TRIGGER, &event, sizeof event);
         trigger_drop_event();
     }
     msg_stopped_t stopped;
     if (uart_tx_free() >= 2 * REPLY_ROOM + MSG_SIZE_STOPPED + 6 && trigger_peek_stopped(&stopped)) {
-        send_frame(MSG_ID_STOPPED, &stopped, sizeof stopped);
+        send_packet(MSG_ID_STOPPED, &stopped, sizeof stopped);
         trigger_drop_stopped();
     }
 }
@@ -282,7 +282,7 @@ void protocol_poll(void)
     uint8_t blocked = parse();
     uint8_t budget = RX_RING_SIZE;
     while (!blocked && budget) {
-        if (WINDOW - end < FRAME_MAX)
+        if (WINDOW - end < PACKET_MAX)
             compact();
         uint8_t got = 0;
         while (end < WINDOW && budget && uart_read(&window[end], &stamps[end])) {

@@ -2,7 +2,7 @@
  * uart.h: UART0 with interrupt-driven receive and transmit rings.
  *
  * Receive: the RX-complete interrupt stores each byte with TCNT1 read in that interrupt
- * (a 16-bit stamp, clock_extend16() in clock.h makes it a tick), so a frame's reception
+ * (a 16-bit stamp, clock_extend16() in clock.h makes it a tick), so a packet's reception
  * time is the time its last byte came in, not the time the main loop got round to it.
  *
  * Both UART interrupts are nestable: they mask their own enable bit and re-enable
@@ -11,10 +11,10 @@
  * stop bit, or up to about 20 us when a trigger interrupt ran first. The
  * main loop takes bytes out within a few milliseconds (the stamp is good for 32.8 ms). A
  * byte that finds the ring full is dropped; the parser's resync turns the damage into ERROR
- * frames, never a stuck stream.
+ * packets, never a stuck stream.
  *
  * Transmit: uart_write() copies into the ring and enables the data-register-empty interrupt;
- * it never waits. Callers ask uart_tx_free() first and write whole frames only, so a frame
+ * it never waits. Callers ask uart_tx_free() first and write whole packets only, so a packet
  * is never cut; nothing here blocks the trigger timing.
  */
 #ifndef UART_H

@@ -1,8 +1,8 @@
 """The trigger firmware itself, built from source with avr-gcc and run on simavr over a pty.
 
 Every test talks to the real firmware through `firmware_bridge.simulator.SimulatedMcu` with
-pyserial, building and parsing frames with `firmware_bridge.framing`, and checks timing in
-simulated time (the harness's edge log of the trigger pin, and the ticks in the frames),
+pyserial, building and parsing packets with `firmware_bridge.packets`, and checks timing in
+simulated time (the harness's edge log of the trigger pin, and the ticks in the packets),
 never by the host's clock. Skipped, with the reason, when avr-gcc or libsimavr is missing.
 
 Bounds used below: an edge made by Timer1's compare unit is logged at its exact CPU cycle,
@@ -24,7 +24,6 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from firmware_bridge.framing import DecodedFrame, FrameDecoder, encode
 from firmware_bridge.messages import (
     BY_NAME,
     PROTOCOL_VERSION,
@@ -36,6 +35,7 @@ from firmware_bridge.messages import (
     TriggerSource,
     crc16,
 )
+from firmware_bridge.packets import DecodedPacket, PacketDecoder, encode
 from firmware_bridge.simulator import EncoderSegment, SimulatedMcu
 from tests.system.firmware_peers import firmware_binaries
 
@@ -51,13 +51,13 @@ def binaries() -> dict[str, Path]:
 
 
 class Link:
-    """The host end: numbered frames out, decoded frames in, everything received kept."""
+    """The host end: numbered packets out, decoded packets in, everything received kept."""
 
     def __init__(self, port) -> None:
         self.port = port
-        self.decoder = FrameDecoder()
+        self.decoder = PacketDecoder()
         self.seq = 0
-        self.received: list[DecodedFrame] = []
+        self.received: list[DecodedPacket] = []
         self._unread = 0
 
     def send(self, name: str, **values) -> int:
@@ -75,10 +75,10 @@ class Link:
             self.received.extend(self.decoder.feed(data))
 
     def wait_for(
-        self, match: Callable[[DecodedFrame], bool], timeout_s: float = 2.0
-    ) -> DecodedFrame:
-        """The first matching frame after the one the previous wait_for returned; frames
-        skipped on the way stay in `received` (for `frames()`) but are not matched again."""
+        self, match: Callable[[DecodedPacket], bool], timeout_s: float = 2.0
+    ) -> DecodedPacket:
+        """The first matching packet after the one the previous wait_for returned; packets
+        skipped on the way stay in `received` (for `packets()`) but are not matched again."""
         deadline = time.monotonic() + timeout_s
         while True:
             for index in range(self._unread, len(self.received)):
@@ -87,21 +87,21 @@ class Link:
                     return self.received[index]
             if time.monotonic() > deadline:
                 names = [f.name for f in self.received[self._unread :]]
-                raise AssertionError(f"no matching frame in {timeout_s} s; unread: {names}")
+                raise AssertionError(f"no matching packet in {timeout_s} s; unread: {names}")
             self.poll()
 
-    def expect(self, name: str, timeout_s: float = 2.0, **values) -> DecodedFrame:
-        def match(frame: DecodedFrame) -> bool:
-            return frame.name == name and all(frame.values.get(k) == v for k, v in values.items())
+    def expect(self, name: str, timeout_s: float = 2.0, **values) -> DecodedPacket:
+        def match(packet: DecodedPacket) -> bool:
+            return packet.name == name and all(packet.values.get(k) == v for k, v in values.items())
 
         return self.wait_for(match, timeout_s)
 
-    def hello(self, seq: int = 0) -> DecodedFrame:
+    def hello(self, seq: int = 0) -> DecodedPacket:
         self.seq = seq
         self.send("HELLO")
         return self.expect("HELLO_REPLY")
 
-    def command(self, name: str, **values) -> DecodedFrame:
+    def command(self, name: str, **values) -> DecodedPacket:
         """Send a command; its ACK or ERROR."""
         seq = self.send(name, **values)
         return self.wait_for(
@@ -111,7 +111,7 @@ class Link:
             )
         )
 
-    def frames(self, name: str) -> list[DecodedFrame]:
+    def packets(self, name: str) -> list[DecodedPacket]:
         return [f for f in self.received if f.name == name]
 
 
@@ -124,7 +124,7 @@ def configure(
     divisor: int = 0,
     count: int = 0,
     start_tick: int = 0,
-) -> DecodedFrame:
+) -> DecodedPacket:
     return link.command(
         "CONFIGURE",
         source=int(source),
@@ -136,7 +136,7 @@ def configure(
     )
 
 
-def retime(link: Link, *, period: int = 0, divisor: int = 0) -> DecodedFrame:
+def retime(link: Link, *, period: int = 0, divisor: int = 0) -> DecodedPacket:
     return link.command("RETIME", period_ticks=period, encoder_divisor=divisor)
 
 
@@ -158,7 +158,7 @@ def bracketed_retime(link: Link, *, period: int = 0, divisor: int = 0) -> tuple[
     return answer.name, before, after
 
 
-def raw_frame(seq: int, message_id: int, payload: bytes = b"") -> bytes:
+def raw_packet(seq: int, message_id: int, payload: bytes = b"") -> bytes:
     body = bytes([len(payload) + 2, seq, message_id]) + payload
     crc = crc16(body)
     return bytes([START_BYTE]) + body + bytes([crc & 0xFF, crc >> 8])
@@ -245,7 +245,7 @@ def test_period_mode_edges_match_the_command(start_mcu, width, period, count):
     stopped = link.expect("STOPPED", timeout_s=2.0 + count * period * TICK_NS / NS_PER_S)
     assert stopped.values == {"reason": StopReason.COUNT_DONE, "triggers": count}
 
-    triggers = link.frames("TRIGGER")
+    triggers = link.packets("TRIGGER")
     assert [t.values["trigger_seq"] for t in triggers] == list(range(1, count + 1))
     assert [t.values["tick"] for t in triggers] == [start_tick + k * period for k in range(count)]
     measured = pulses(mcu)
@@ -288,7 +288,7 @@ def test_encoder_mode_triggers_every_divisor_counts(start_mcu, counts_per_s):
     assert link.command("ARM").name == "ACK"
     link.expect("STOPPED", timeout_s=3.0)
 
-    triggers = [t.values for t in link.frames("TRIGGER")]
+    triggers = [t.values for t in link.packets("TRIGGER")]
     assert len(triggers) == count
     step = divisor if counts_per_s > 0 else -divisor
     positions = [t["position"] for t in triggers]
@@ -335,7 +335,7 @@ def test_retime_changes_the_period_from_the_first_rise_not_yet_programmed(
     stopped = link.expect("STOPPED", timeout_s=3.0).values
     assert stopped == {"reason": StopReason.COUNT_DONE, "triggers": count}
 
-    triggers = link.frames("TRIGGER")
+    triggers = link.packets("TRIGGER")
     assert [t.values["trigger_seq"] for t in triggers] == list(range(1, count + 1))
     ticks = [t.values["tick"] for t in triggers]
     first_new = next(k for k, tick in enumerate(ticks) if tick + width > taken_after)
@@ -369,7 +369,7 @@ def test_retime_changes_the_period_from_the_first_rise_not_yet_programmed(
 )
 def test_retime_changes_the_encoder_divisor(start_mcu, new_divisor, counts_per_s, already_past):
     """Triggers every 200 counts from position 0; the encoder stops some counts after
-    trigger 3 (at least the 8 counts of the TRIGGER frame's time on the line), RETIME sets a
+    trigger 3 (at least the 8 counts of the TRIGGER packet's time on the line), RETIME sets a
     new divisor, and the encoder runs on. A larger divisor counts
     from the last trigger position; one the encoder is already past triggers on the next
     count, and the grid goes on from there in steps of the new divisor."""
@@ -388,7 +388,7 @@ def test_retime_changes_the_encoder_divisor(start_mcu, new_divisor, counts_per_s
     time.sleep(0.05)
     link.send("GET_POSITION")
     stopped_at = link.expect("POSITION").values["position"]
-    before = [t.values["position"] for t in link.frames("TRIGGER")]
+    before = [t.values["position"] for t in link.packets("TRIGGER")]
     assert before == [k * old_divisor for k in range(len(before))]
     moved = stopped_at - before[-1]
     assert 0 <= moved < old_divisor
@@ -400,7 +400,7 @@ def test_retime_changes_the_encoder_divisor(start_mcu, new_divisor, counts_per_s
     assert link.command("DISARM").name == "ACK"
     stopped = link.expect("STOPPED").values
 
-    triggers = [t.values for t in link.frames("TRIGGER")]
+    triggers = [t.values for t in link.packets("TRIGGER")]
     assert [t["trigger_seq"] for t in triggers] == list(range(1, len(triggers) + 1))
     assert len(triggers) == stopped["triggers"] == len(pulses(mcu))
     after = triggers[len(before) :]
@@ -437,7 +437,7 @@ def test_retime_is_refused_unless_armed_and_a_bad_value_changes_nothing(start_mc
     stopped = link.expect("STOPPED").values
     assert retime(link, period=4000).values["code"] == ErrorCode.BAD_STATE
 
-    ticks = [t.values["tick"] for t in link.frames("TRIGGER")]
+    ticks = [t.values["tick"] for t in link.packets("TRIGGER")]
     assert len(ticks) == stopped["triggers"]
     assert {b - a for a, b in itertools.pairwise(ticks)} == {2000}
     rises = [rise for rise, _ in pulses(mcu)]
@@ -481,7 +481,7 @@ def test_disarm_stops_and_reports(start_mcu):
     assert stopped["reason"] == StopReason.DISARMED
     time.sleep(0.05)
     link.poll()
-    assert len(link.frames("TRIGGER")) == stopped["triggers"]
+    assert len(link.packets("TRIGGER")) == stopped["triggers"]
     edges_after_stop = mcu.edges()
     time.sleep(0.05)
     assert mcu.edges() == edges_after_stop
@@ -491,7 +491,7 @@ def test_disarm_stops_and_reports(start_mcu):
 
 
 def test_a_trigger_flood_loses_events_not_edges_or_control(start_mcu):
-    """5 kHz triggers make more TRIGGER frames than the line carries: frames are dropped
+    """5 kHz triggers make more TRIGGER packets than the line carries: packets are dropped
     (gaps in trigger_seq), the edges stay exact and the host can still ping and disarm."""
     mcu, link = start_mcu()
     link.hello()
@@ -503,7 +503,7 @@ def test_a_trigger_flood_loses_events_not_edges_or_control(start_mcu):
         link.expect("PONG", token=token)
     assert link.command("DISARM").name == "ACK"
     stopped = link.expect("STOPPED").values
-    seqs = [t.values["trigger_seq"] for t in link.frames("TRIGGER")]
+    seqs = [t.values["trigger_seq"] for t in link.packets("TRIGGER")]
     assert seqs == sorted(seqs) and len(seqs) < stopped["triggers"]
     measured = pulses(mcu)
     assert len(measured) == stopped["triggers"]
@@ -559,9 +559,9 @@ def shared_link(binaries, tmp_path_factory) -> Iterator[Link]:
 
 
 def _good_crc_then_bad(seq: int) -> bytes:
-    frame = bytearray(encode("PING", seq, token=1))
-    frame[-1] ^= 0x5A
-    return bytes(frame)
+    packet = bytearray(encode("PING", seq, token=1))
+    packet[-1] ^= 0x5A
+    return bytes(packet)
 
 
 @pytest.mark.parametrize(
@@ -570,18 +570,18 @@ def _good_crc_then_bad(seq: int) -> bytes:
         (_good_crc_then_bad, ErrorCode.BAD_CRC, BY_NAME["PING"].id),
         (lambda seq: bytes([START_BYTE, 1]), ErrorCode.BAD_LENGTH, 1),
         (lambda seq: bytes([START_BYTE, 41]), ErrorCode.BAD_LENGTH, 41),
-        (lambda seq: raw_frame(seq, 0x55), ErrorCode.UNKNOWN_MESSAGE, 0x55),
+        (lambda seq: raw_packet(seq, 0x55), ErrorCode.UNKNOWN_MESSAGE, 0x55),
         (
-            lambda seq: raw_frame(seq, BY_NAME["PONG"].id, bytes(12)),
+            lambda seq: raw_packet(seq, BY_NAME["PONG"].id, bytes(12)),
             ErrorCode.UNKNOWN_MESSAGE,
             0x82,
         ),
         (
-            lambda seq: raw_frame(seq, BY_NAME["PING"].id, b"\x01\x02\x03"),
+            lambda seq: raw_packet(seq, BY_NAME["PING"].id, b"\x01\x02\x03"),
             ErrorCode.BAD_PAYLOAD,
             0x02,
         ),
-        (lambda seq: raw_frame(seq, BY_NAME["ARM"].id, b"\x00"), ErrorCode.BAD_PAYLOAD, 0x04),
+        (lambda seq: raw_packet(seq, BY_NAME["ARM"].id, b"\x00"), ErrorCode.BAD_PAYLOAD, 0x04),
         (lambda seq: encode("PING", (seq + 5) % 256, token=7), ErrorCode.OUT_OF_SEQUENCE, None),
         (lambda seq: encode("PING", seq, token=7)[:6], ErrorCode.BAD_LENGTH, 6),
     ],
@@ -597,7 +597,7 @@ def _good_crc_then_bad(seq: int) -> bytes:
         "truncated",
     ],
 )
-def test_malformed_frames_get_their_error_and_the_stream_survives(shared_link, make, code, detail):
+def test_malformed_packets_get_their_error_and_the_stream_survives(shared_link, make, code, detail):
     link = shared_link
     link.hello()
     seq = link.seq
@@ -635,7 +635,7 @@ def _garbage(draw) -> bytes:
         return draw(st.binary(min_size=1, max_size=40))
     if kind == "starts":
         return bytes(draw(st.lists(st.sampled_from([START_BYTE, 2, 6, 40, 0, 0xFF]), max_size=12)))
-    frame = bytearray(
+    packet = bytearray(
         encode(
             "CONFIGURE",
             draw(st.integers(0, 255)),
@@ -650,30 +650,30 @@ def _garbage(draw) -> bytes:
         else encode("PING", draw(st.integers(0, 255)), token=draw(st.integers(0, 2**32 - 1)))
     )
     if kind == "truncated":
-        return bytes(frame[: draw(st.integers(1, len(frame) - 1))])
-    frame[draw(st.integers(1, len(frame) - 1))] ^= draw(st.integers(1, 255))
-    return bytes(frame)
+        return bytes(packet[: draw(st.integers(1, len(packet) - 1))])
+    packet[draw(st.integers(1, len(packet) - 1))] ^= draw(st.integers(1, 255))
+    return bytes(packet)
 
 
 _tokens = itertools.count(1)
 
 
 def _pongs_expected(stream: bytes, expected_seq: int) -> list[int]:
-    """The PING tokens the firmware must answer for `stream`: the frames the host's reference
-    decoder finds in it (a truncated frame can, rarely, be completed into a valid one by the
+    """The PING tokens the firmware must answer for `stream`: the packets the host's reference
+    decoder finds in it (a truncated packet can, rarely, be completed into a valid one by the
     next bytes; both parsers then agree on that), through the firmware's sequence rule."""
-    decoder = FrameDecoder()
-    frames = decoder.feed(stream)
+    decoder = PacketDecoder()
+    packets = decoder.feed(stream)
     while decoder.pending():
-        frames.extend(decoder.give_up_partial())
+        packets.extend(decoder.give_up_partial())
     tokens = []
-    for frame in frames:
-        if frame.name == "HELLO" and not frame.problem:
-            expected_seq = (frame.seq + 1) % 256
-        elif frame.seq == expected_seq:
+    for packet in packets:
+        if packet.name == "HELLO" and not packet.problem:
+            expected_seq = (packet.seq + 1) % 256
+        elif packet.seq == expected_seq:
             expected_seq = (expected_seq + 1) % 256
-            if frame.name == "PING" and not frame.problem:
-                tokens.append(frame.values["token"])
+            if packet.name == "PING" and not packet.problem:
+                tokens.append(packet.values["token"])
     return tokens
 
 
@@ -682,7 +682,7 @@ def _pongs_expected(stream: bytes, expected_seq: int) -> list[int]:
 )
 @given(st.lists(st.tuples(_garbage(), st.booleans()), min_size=1, max_size=6))
 def test_firmware_parser_survives_garbage(shared_link, pieces):
-    """Garbage, truncated and corrupted frames interleaved with PINGs: the firmware answers
+    """Garbage, truncated and corrupted packets interleaved with PINGs: the firmware answers
     exactly the PINGs the host's reference decoder finds (normally all of them), and nothing
     else, so the stream is never desynchronised."""
     link = shared_link
@@ -739,4 +739,4 @@ def test_production_build_has_no_hang_pin(start_mcu):
     link.send("PING", token=5)
     link.expect("PONG", token=5)
     assert mcu.resets() == []
-    assert len(link.frames("BOOT")) == 1
+    assert len(link.packets("BOOT")) == 1

@@ -1,7 +1,7 @@
 """McuLink against the real trigger firmware, built with avr-gcc and run on simavr over a pty.
 
 The firmware's own behaviour (edges to the cycle, parser rules, garbage at the parser) is
-tested in `test_firmware.py` with raw frames; these tests are about the host's link: the
+tested in `test_firmware.py` with raw packets; these tests are about the host's link: the
 handshake and its refusal, commands and their answers, the event stream, resynchronisation,
 line damage, a firmware restart, and the clock sync against the best ground truth the
 simulation has (see `test_clock_sync_tracks_the_simulated_clock`). Skipped, with the
@@ -28,7 +28,6 @@ from firmware_bridge import firmware_build
 from firmware_bridge.firmware_build import (
     FirmwareBuildError,
 )
-from firmware_bridge.framing import DecodedFrame, FrameDecoder, encode
 from firmware_bridge.link import (
     AnswerLost,
     BootEvent,
@@ -47,6 +46,7 @@ from firmware_bridge.messages import (
     StopReason,
     TriggerSource,
 )
+from firmware_bridge.packets import DecodedPacket, PacketDecoder, encode
 from firmware_bridge.simulator import SimulatedMcu
 from tests.system.firmware_peers import firmware_binaries
 
@@ -174,7 +174,7 @@ def test_boot_then_handshake(start):
     trip = run.link.ping()
     assert trip.sent_ns < trip.received_ns and trip.tick > info.tick
     stats = run.link.statistics()
-    assert stats.crc_errors == stats.lost_frames == stats.timeouts == 0
+    assert stats.crc_errors == stats.lost_packets == stats.timeouts == 0
     assert stats.boots == 1 and stats.round_trips >= 5
 
 
@@ -232,7 +232,7 @@ def test_period_triggering_events_and_edges(start):
     assert len(edges) == count
     offsets = {edge - tick * TICK_NS for edge, tick in zip(edges, ticks, strict=True)}
     assert max(offsets) - min(offsets) <= 63
-    assert link.statistics().lost_frames == 0
+    assert link.statistics().lost_packets == 0
     if _pacing_slips(run) == 0:
         steps = [b - a for a, b in zip(host, host[1:], strict=False)]
         assert all(abs(step - period * TICK_NS) < 2_000_000 for step in steps), steps
@@ -349,11 +349,11 @@ def _line_damage(draw) -> bytes:
         return draw(st.binary(min_size=1, max_size=30))
     if kind == "starts":
         return bytes(draw(st.lists(st.sampled_from([START_BYTE, 2, 8, 40, 0]), max_size=10)))
-    frame = bytearray(encode("SET_DEAD_MAN", draw(st.integers(0, 255)), timeout_ms=0))
+    packet = bytearray(encode("SET_DEAD_MAN", draw(st.integers(0, 255)), timeout_ms=0))
     if kind == "truncated":
-        return bytes(frame[: draw(st.integers(1, len(frame) - 1))])
-    frame[draw(st.integers(1, len(frame) - 1))] ^= draw(st.integers(1, 255))
-    return bytes(frame)
+        return bytes(packet[: draw(st.integers(1, len(packet) - 1))])
+    packet[draw(st.integers(1, len(packet) - 1))] ^= draw(st.integers(1, 255))
+    return bytes(packet)
 
 
 @pytest.fixture(scope="module")
@@ -374,11 +374,11 @@ def damaged_line(binaries, tmp_path_factory) -> Iterator[tuple[McuLink, serial.S
     max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
 )
 @given(damage=st.lists(_line_damage(), min_size=1, max_size=4))
-def test_line_damage_costs_at_most_the_frame_it_swallows(damaged_line, damage):
+def test_line_damage_costs_at_most_the_packet_it_swallows(damaged_line, damage):
     """Garbage reaches the firmware just before the link's next request (written by a second
     opener of the pty); the firmware answers some of it with BAD_CRC / BAD_LENGTH errors that
     belong to no request. A command right after the garbage may lose its first copy (a
-    truncated frame can take the request's start byte as its missing last byte), which its
+    truncated packet can take the request's start byte as its missing last byte), which its
     resend covers; the next request on a clean line is answered."""
     link, noise = damaged_line
     for piece in damage:
@@ -387,15 +387,15 @@ def test_line_damage_costs_at_most_the_frame_it_swallows(damaged_line, damage):
         link.set_dead_man(0, timeout_s=2.0)
         link.ping(timeout_s=1.0)
     link.configure(TriggerSource.PERIOD, 200, 2000, timeout_s=1.0)
-    assert link.statistics().unusable_frames == 0
+    assert link.statistics().unusable_packets == 0
 
 
 class LossyLine:
-    """A line that loses or holds up chosen frames: a TCP server on 127.0.0.1 that the link
-    reaches as ``socket://127.0.0.1:PORT`` and that forwards whole frames between it and the
-    MCU's pty, dropping the next frame of a name put in `drop_to_host` or `drop_to_mcu`, and
-    sending the next frame of a name put in `stall_to_host` in two halves `stall_s` apart
-    (what a loaded host or a USB adapter's latency timer does to a frame)."""
+    """A line that loses or holds up chosen packets: a TCP server on 127.0.0.1 that the link
+    reaches as ``socket://127.0.0.1:PORT`` and that forwards whole packets between it and the
+    MCU's pty, dropping the next packet of a name put in `drop_to_host` or `drop_to_mcu`, and
+    sending the next packet of a name put in `stall_to_host` in two halves `stall_s` apart
+    (what a loaded host or a USB adapter's latency timer does to a packet)."""
 
     def __init__(self, pty_path: str) -> None:
         self.server = socket.create_server(("127.0.0.1", 0))
@@ -412,10 +412,10 @@ class LossyLine:
         self._threads = [threading.Thread(target=self._serve, daemon=True)]
         self._threads[0].start()
 
-    def _drop(self, wanted: list[str], frame: DecodedFrame) -> bool:
-        if frame.name in wanted:
-            wanted.remove(frame.name)
-            self.dropped.append(frame.name)
+    def _drop(self, wanted: list[str], packet: DecodedPacket) -> bool:
+        if packet.name in wanted:
+            wanted.remove(packet.name)
+            self.dropped.append(packet.name)
             return True
         return False
 
@@ -429,28 +429,28 @@ class LossyLine:
         to_mcu = threading.Thread(target=self._pump_to_mcu, daemon=True)
         to_mcu.start()
         self._threads.append(to_mcu)
-        decoder = FrameDecoder()
+        decoder = PacketDecoder()
         while not self._stop.is_set():
             try:
                 data = self.mcu.read(256)
             except (serial.SerialException, OSError):
                 return
-            for frame in decoder.feed(data):
-                if self._drop(self.drop_to_host, frame):
+            for packet in decoder.feed(data):
+                if self._drop(self.drop_to_host, packet):
                     continue
-                if frame.name in self.stall_to_host:
-                    self.stall_to_host.remove(frame.name)
-                    self.stalled.append(frame.name)
-                    half = len(frame.raw) // 2
-                    self.client.sendall(frame.raw[:half])
+                if packet.name in self.stall_to_host:
+                    self.stall_to_host.remove(packet.name)
+                    self.stalled.append(packet.name)
+                    half = len(packet.raw) // 2
+                    self.client.sendall(packet.raw[:half])
                     time.sleep(self.stall_s)
-                    self.client.sendall(frame.raw[half:])
+                    self.client.sendall(packet.raw[half:])
                 else:
-                    self.client.sendall(frame.raw)
+                    self.client.sendall(packet.raw)
 
     def _pump_to_mcu(self) -> None:
         assert self.client is not None
-        decoder = FrameDecoder()
+        decoder = PacketDecoder()
         while not self._stop.is_set():
             try:
                 data = self.client.recv(256)
@@ -460,9 +460,9 @@ class LossyLine:
                 return
             if not data:
                 return
-            for frame in decoder.feed(data):
-                if not self._drop(self.drop_to_mcu, frame):
-                    self.mcu.write(frame.raw)
+            for packet in decoder.feed(data):
+                if not self._drop(self.drop_to_mcu, packet):
+                    self.mcu.write(packet.raw)
 
     def close(self) -> None:
         self._stop.set()
@@ -538,12 +538,12 @@ def test_a_lost_event_shows_as_a_gap_in_both_sequences(lossy):
     link.arm()
     triggers, _ = _until_stopped(link, timeout_s=2.0)
     assert [t.trigger_seq for t in triggers] == [2, 3, 4, 5]
-    assert link.statistics().lost_frames == 1
+    assert link.statistics().lost_packets == 1
 
 
-def test_a_frame_held_up_in_mid_frame_is_still_received(lossy):
+def test_a_packet_held_up_in_mid_packet_is_still_received(lossy):
     """Half a TRIGGER, then ten quiet periods of the link's reader, then the rest: the
-    link keeps the partial frame (nothing whole lies behind its start byte) and takes it
+    link keeps the partial packet (nothing whole lies behind its start byte) and takes it
     when it completes."""
     link, line = lossy
     link.configure(TriggerSource.PERIOD, 200, 2000, count=3)
@@ -554,7 +554,7 @@ def test_a_frame_held_up_in_mid_frame_is_still_received(lossy):
     assert line.stalled == ["TRIGGER"]
     assert [t.trigger_seq for t in triggers] == [1, 2, 3] and stopped.triggers == 3
     stats = link.statistics()
-    assert stats.lost_frames == 0 and stats.partials_given_up == 0
+    assert stats.lost_packets == 0 and stats.partials_given_up == 0
 
 
 def test_clock_sync_tracks_the_simulated_clock(start):
