@@ -88,7 +88,7 @@ def run_test(
     plan = exposure_for(config, rig.optics, rig.speed_mm_min)
     calibration = Calibration.from_optics(rig.optics.pixel_size_um, rig.optics.magnification)
     line = ProgressLine(progress) if progress is not None else None
-    samples = _SampleLog(simulate)
+    samples = _SampleLog()
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
     recorder = None
@@ -111,11 +111,8 @@ def run_test(
         rig.close()
         raise
     outputs: list[RunOutput] = ([recorder] if recorder is not None else []) + list(hooks.outputs)
-    facts = {
-        "test_id": test_id,
-        "simulated": simulate,
-        **_run_facts(config, rig, plan, calibration, in_force.exposure_us, triggers),
-    }
+    known_before = _run_facts(config, rig, plan, calibration, in_force.exposure_us, triggers)
+    facts = {"test_id": test_id, "simulated": simulate, **known_before}
     reference = _Reference(config, rig, calibration, samples, outputs, facts)
     loop = MeasurementLoop(
         rig.camera,
@@ -145,10 +142,7 @@ def run_test(
             line.close()
         rig.close()
     _end_outputs(outputs, result)
-    extra = {
-        **{k: v for k, v in facts.items() if k not in ("test_id", "simulated")},
-        **_run_counts(result, samples, reference, loop, rig, pacer),
-    }
+    extra = {**known_before, **_run_counts(result, samples, reference, loop, rig, pacer)}
     for output in outputs:
         extra.update(output.stats())
     outcome = RunOutcome(
@@ -166,8 +160,7 @@ class _SampleLog:
     """Every sample's record for the summary, with the truth of a simulated test (which only
     scores: nothing measured reads it)."""
 
-    def __init__(self, simulate: bool) -> None:
-        self.simulate = simulate
+    def __init__(self) -> None:
         self.records: list[SampleRecord] = []
         self.truth: GaugeTruth | None = None
         self.last_time_s = 0.0
