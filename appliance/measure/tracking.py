@@ -87,7 +87,8 @@ class TrackerSettings:
             position and deformation: the fast default, since the prediction is within a
             pixel or two of the truth) or "zncc" / "lpq" (searched every frame).
         search_radius_px: half-width of the every-frame window around the prediction: the
-            search radius, and the furthest a match may land from its prediction.
+            search radius, and the furthest a match may land from its prediction (at least 1:
+            the exposure planner keeps the frame-to-frame motion within it).
         reacquire_search: search used to re-acquire a failed point: "zncc" or "lpq".
         reacquire_radius_px: its half-width.
         prefilter_sigma_px: Gaussian pre-filter of IC-GN.
@@ -104,7 +105,7 @@ class TrackerSettings:
     subset_px: int = field(default=41, metadata={"minimum": 5, "maximum": 301, "odd": True})
     min_subset_px: int = field(default=11, metadata={"minimum": 5, "maximum": 301, "odd": True})
     search: str = field(default="none", metadata={"choices": ("none", "zncc", "lpq")})
-    search_radius_px: int = field(default=10, metadata={"minimum": 0, "maximum": 1000})
+    search_radius_px: int = field(default=10, metadata={"minimum": 1, "maximum": 1000})
     reacquire_search: str = field(default="zncc", metadata={"choices": ("zncc", "lpq")})
     reacquire_radius_px: int = field(default=40, metadata={"minimum": 0, "maximum": 1000})
     prefilter_sigma_px: float = field(

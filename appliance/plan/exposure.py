@@ -264,6 +264,16 @@ def plan_exposure(
     )
 
 
+_CONFIGURED_BY = {
+    "speed_mm_min": "[run] speed_mm_min",
+    "blur_budget_px": "[camera] blur_budget_px",
+    "capture_range_px": "[tracking] search_radius_px",
+    "min_exposure_s": "[camera] min_exposure_us",
+    "max_exposure_s": "[camera] max_exposure_us",
+}
+"""The planner's parameter -> the configuration key that sets it."""
+
+
 def exposure_for(config: Config, optics: Optics, speed_mm_min: float) -> ExposurePlan:
     """The exposure plan of a test at a crosshead speed: the planner's for the configuration's
     blur budget, exposure bounds and search radius, with `[camera] exposure_us` and
@@ -271,17 +281,21 @@ def exposure_for(config: Config, optics: Optics, speed_mm_min: float) -> Exposur
     `min_frame_rate_hz` unless the exposure does not allow it.
 
     Raises:
-        InputError: an exposure longer than the frame period (names the key).
+        InputError: an exposure longer than the frame period, or a value the planner refuses
+            (names the key).
     """
     camera = config.camera
-    plan = plan_exposure(
-        optics,
-        speed_mm_min,
-        blur_budget_px=camera.blur_budget_px,
-        capture_range_px=float(config.tracking.search_radius_px),
-        min_exposure_s=camera.min_exposure_us * 1e-6,
-        max_exposure_s=camera.max_exposure_us * 1e-6,
-    )
+    try:
+        plan = plan_exposure(
+            optics,
+            speed_mm_min,
+            blur_budget_px=camera.blur_budget_px,
+            capture_range_px=float(config.tracking.search_radius_px),
+            min_exposure_s=camera.min_exposure_us * 1e-6,
+            max_exposure_s=camera.max_exposure_us * 1e-6,
+        )
+    except ParameterError as exc:
+        raise InputError(f"{_CONFIGURED_BY[exc.parameter]}: {exc}") from None
     exposure_s = plan.exposure_s if camera.exposure_us is None else camera.exposure_us * 1e-6
     if camera.frame_rate_hz is None:
         period_s = max(min(plan.frame_period_s, 1.0 / camera.min_frame_rate_hz), exposure_s)

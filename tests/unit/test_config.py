@@ -42,6 +42,7 @@ def test_empty_file_gives_the_defaults_and_values_are_typed():
         ("[run]\nspeed_mm_min = nan\n", "[run] speed_mm_min: must be finite"),
         ("camera = 3\n", "run.toml: [camera]: must be a table"),
         ("[tracking]\nmin_subset_px = 51\n", "[tracking] min_subset_px: must be <= subset_px"),
+        ("[tracking]\nsearch_radius_px = 0\n", "[tracking] search_radius_px: must be >= 1"),
         ("[camera]\nmin_exposure_us = 3e4\n", "[camera] min_exposure_us: must be <= max_exp"),
         ("[camera\n", "run.toml: invalid TOML"),
         ("[camera]\nregion_width_px = 512\n", "[camera] region_x_px: required with the other"),
