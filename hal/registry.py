@@ -15,11 +15,11 @@ from __future__ import annotations
 
 import importlib
 from typing import Any
-from urllib.parse import urlsplit
 
 from hal.camera.base import Camera
 from hal.errors import HardwareConfigError
 from hal.machine.base import TestingMachine
+from hal.urls import split_url
 
 CAMERA_BACKENDS: dict[str, str] = {
     "sim": "hal.camera.sim:SimCamera",
@@ -37,7 +37,7 @@ MACHINE_BACKENDS: dict[str, str] = {
 
 
 def _load(table: dict[str, str], url: str, kind: str) -> type:
-    scheme = urlsplit(url).scheme if "://" in url else ""
+    scheme = split_url(url, kind).scheme if "://" in url else ""
     if not scheme:
         raise HardwareConfigError(f"{kind} URL {url!r} has no scheme (e.g. sim://)")
     if scheme not in table:

@@ -11,6 +11,7 @@ way a command line changes a configuration, checked as a file is.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -44,14 +45,34 @@ def _number(parse: Callable[[str], Any], accept: Callable[[Any], bool], requirem
     return convert
 
 
-subset_size = _number(int, lambda v: v >= 5 and v % 2 == 1, "must be an odd size >= 5")
-window_size = _number(int, lambda v: v >= 3 and v % 2 == 1, "must be an odd size >= 3")
+def within(parse: Callable[[str], Any], low: float, high: float, *, above: bool = False):
+    """An argparse type for a value of physical range `low` .. `high` (inclusive; with `above`
+    the value must exceed `low`)."""
+    if above:
+        return _number(parse, lambda v: low < v <= high, f"must be > {low:g} and <= {high:g}")
+    return _number(parse, lambda v: low <= v <= high, f"must be in {low:g} .. {high:g}")
+
+
+def like_key(table: type, key: str, *, above: bool = False):
+    """An argparse type with the range of a configuration key (`OpticsConfig`,
+    `"focal_length_mm"`): an option and a key for the same quantity share one range."""
+    f = next(f for f in dataclasses.fields(table) if f.name == key)
+    parse = int if f.type in (int, "int", "int | None") else float
+    return within(parse, f.metadata["minimum"], f.metadata["maximum"], above=above)
+
+
+subset_size = _number(
+    int, lambda v: 5 <= v <= 301 and v % 2 == 1, "must be an odd size in 5 .. 301"
+)
+window_size = _number(
+    int, lambda v: 3 <= v <= 301 and v % 2 == 1, "must be an odd size in 3 .. 301"
+)
 non_negative_int = _number(int, lambda v: v >= 0, "must be >= 0")
 non_negative_float = _number(float, lambda v: v >= 0, "must be a finite number >= 0")
 finite_float = _number(float, lambda v: True, "is not finite")
 positive_float = _number(float, lambda v: v > 0, "must be a finite number > 0")
-frame_count = _number(int, lambda v: v >= 2, "must be >= 2")
-read_count = _number(int, lambda v: v >= 1, "must be >= 1")
+frame_count = within(int, 2, 100_000)
+read_count = within(int, 1, 100_000)
 
 LIVE_OPTIONS = (
     ("modbus_tcp", "modbus", "tcp"),

@@ -66,7 +66,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     )
     machine.add_argument(
         "--duration",
-        type=arguments.positive_float,
+        type=arguments.within(float, 0.0, 3600.0, above=True),
         default=5.0,
         help="seconds per measurement (5)",
     )

@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 from appliance.cli import arguments, device_checks
+from appliance.config import CameraConfig
 from appliance.errors import InputError
 from hal.errors import HardwareConfigError, HardwareError
 
@@ -40,9 +41,14 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
         "--frames", type=arguments.frame_count, default=100, help="frames (100)"
     )
     camera_check.add_argument(
-        "--rate", type=arguments.positive_float, default=30.0, help="frame rate asked for, Hz (30)"
+        "--rate",
+        type=arguments.within(float, 0.1, 10000.0),
+        default=30.0,
+        help="frame rate asked for, Hz (30)",
     )
-    camera_check.add_argument("--exposure-us", type=arguments.positive_float, help="exposure, us")
+    camera_check.add_argument(
+        "--exposure-us", type=arguments.like_key(CameraConfig, "exposure_us"), help="exposure, us"
+    )
     camera_check.add_argument("--json", action="store_true", help="print JSON on stdout")
     camera_check.set_defaults(handler=check_camera)
 

@@ -26,7 +26,11 @@ def read_grey(path: str | Path) -> np.ndarray:
     if not path.is_file():
         raise InputError(f"{path}: no such image file")
     data = np.fromfile(path, dtype=np.uint8)
-    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    try:
+        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    except cv2.error as exc:
+        reason = (exc.err or str(exc)).strip()
+        raise InputError(f"{path}: not a readable image (OpenCV refused it: {reason})") from None
     if image is None:
         raise InputError(f"{path}: not a readable image (TIFF, PNG or BMP expected)")
     if image.ndim == 3:

@@ -14,6 +14,7 @@ import json
 import sys
 
 from appliance.cli import arguments
+from appliance.config import CameraConfig, OpticsConfig
 from appliance.errors import InputError, ParameterError
 from appliance.plan.exposure import DEFAULT_MAX_PERIOD_S, motion_blur_length, plan_exposure
 from appliance.plan.optics import Optics
@@ -47,62 +48,68 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         ),
     )
     plan.add_argument(
-        "--focal-length-mm", type=arguments.positive_float, required=True, help="focal length f, mm"
+        "--focal-length-mm",
+        type=arguments.like_key(OpticsConfig, "focal_length_mm"),
+        required=True,
+        help="focal length f, mm",
     )
     plan.add_argument(
         "--object-distance-mm",
-        type=arguments.positive_float,
+        type=arguments.like_key(OpticsConfig, "object_distance_mm"),
         required=True,
         help="specimen-to-lens distance u, mm (> f)",
     )
     plan.add_argument(
         "--pixel-size-um",
-        type=arguments.positive_float,
+        type=arguments.like_key(OpticsConfig, "pixel_size_um"),
         required=True,
         help="sensor pixel pitch p, um",
     )
     plan.add_argument(
-        "--exposure-s", type=arguments.positive_float, required=True, help="exposure T, s"
+        "--exposure-s",
+        type=arguments.within(float, 0.0, 10.0, above=True),
+        required=True,
+        help="exposure T, s",
     )
     plan.add_argument(
         "--speed-mm-min",
-        type=arguments.non_negative_float,
+        type=arguments.within(float, 0.0, 10000.0),
         required=True,
         help="crosshead speed, mm/min",
     )
     plan.add_argument(
         "--speed-fraction",
-        type=arguments.positive_float,
+        type=arguments.within(float, 0.0, 1.0, above=True),
         default=1.0,
         help="fastest gauge point speed / crosshead speed (1, a safe bound)",
     )
     plan.add_argument(
         "--blur-budget-px",
-        type=arguments.positive_float,
+        type=arguments.within(float, 0.0, 100.0, above=True),
         default=1.0,
         help="largest blur wanted, px (1)",
     )
     plan.add_argument(
         "--capture-range-px",
-        type=arguments.positive_float,
+        type=arguments.within(float, 0.0, 1000.0, above=True),
         default=20.0,
         help="largest frame-to-frame motion the search covers, px (20)",
     )
     plan.add_argument(
         "--min-exposure-us",
-        type=arguments.positive_float,
+        type=arguments.like_key(CameraConfig, "min_exposure_us"),
         default=50.0,
         help="shortest exposure the camera allows, us (50)",
     )
     plan.add_argument(
         "--max-exposure-us",
-        type=arguments.positive_float,
+        type=arguments.like_key(CameraConfig, "max_exposure_us"),
         default=20000.0,
         help="longest exposure wanted, us (20000)",
     )
     plan.add_argument(
         "--max-period-s",
-        type=arguments.positive_float,
+        type=arguments.within(float, 0.0, 3600.0, above=True),
         default=DEFAULT_MAX_PERIOD_S,
         help=f"longest frame period wanted, s ({DEFAULT_MAX_PERIOD_S:g}; the period at speed 0)",
     )

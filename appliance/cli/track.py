@@ -27,6 +27,7 @@ from appliance.dic.correlation import (
 )
 from appliance.dic.icgn import ICGNResult
 from appliance.errors import InputError
+from appliance.measure.tracking import TrackerSettings
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -54,26 +55,26 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     )
     track.add_argument(
         "--search-radius",
-        type=arguments.non_negative_int,
+        type=arguments.within(int, 0, 1000),
         default=50,
         help="search half-width, px (50)",
     )
     track.add_argument(
         "--prefilter-sigma",
-        type=arguments.non_negative_float,
+        type=arguments.like_key(TrackerSettings, "prefilter_sigma_px"),
         default=DEFAULT_PREFILTER_SIGMA,
         help=f"Gaussian pre-filter of both images before IC-GN, px ({DEFAULT_PREFILTER_SIGMA}; "
         "0 = off)",
     )
     track.add_argument(
         "--blur-px",
-        type=arguments.non_negative_float,
+        type=arguments.within(float, 0.0, 301.0),
         default=0.0,
         help="known motion blur of the targets, px: the reference is blurred to match (0)",
     )
     track.add_argument(
         "--blur-angle-deg",
-        type=arguments.finite_float,
+        type=arguments.within(float, -360.0, 360.0),
         default=0.0,
         help="direction of that motion, degrees from +x towards +y (0)",
     )

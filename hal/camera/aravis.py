@@ -94,7 +94,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from typing import Any, TypeVar
-from urllib.parse import parse_qsl, unquote, urlsplit
+from urllib.parse import parse_qsl, unquote
 
 import numpy as np
 
@@ -121,6 +121,7 @@ from hal.errors import (
     HardwareFault,
     HardwareTimeout,
 )
+from hal.urls import split_url
 
 _T = TypeVar("_T")
 
@@ -195,7 +196,7 @@ def parse_aravis_url(url: str) -> tuple[str, AravisOptions]:
 
     Raises HardwareConfigError naming the URL and the bad option.
     """
-    parts = urlsplit(url)
+    parts = split_url(url, "camera")
     if parts.scheme != "aravis":
         raise HardwareConfigError(f"camera URL {url!r}: not an aravis:// URL")
     address = unquote(parts.netloc or parts.path.strip("/"))

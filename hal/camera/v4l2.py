@@ -51,13 +51,14 @@ import re
 import threading
 import time
 from typing import Any
-from urllib.parse import parse_qsl, urlsplit
+from urllib.parse import parse_qsl
 
 import cv2
 import numpy as np
 
 from hal.camera.base import CameraSettings, Frame, PixelFormat, Region, TriggerInfo, TriggerMode
 from hal.errors import HardwareConfigError, HardwareConnectError, HardwareTimeout
+from hal.urls import split_url
 
 _MANUAL_EXPOSURE = 1
 """V4L2_EXPOSURE_MANUAL, the value OpenCV's V4L2 backend passes through for manual exposure."""
@@ -82,7 +83,7 @@ class V4l2Options:
 
 def parse_v4l2_url(url: str) -> tuple[str, int, V4l2Options]:
     """The device path, its /dev/videoN index and the options of a ``v4l2://`` URL."""
-    parts = urlsplit(url)
+    parts = split_url(url, "camera")
     if parts.scheme != "v4l2" or not parts.path:
         raise HardwareConfigError(f"camera URL {url!r}: expected v4l2:///dev/videoN")
     path = parts.path

@@ -73,7 +73,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
-from urllib.parse import parse_qsl, urlsplit
+from urllib.parse import parse_qsl
 
 import serial
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
@@ -94,6 +94,7 @@ from hal.machine.register_map import (
     Register,
     RegisterMap,
 )
+from hal.urls import split_url
 
 INITIAL_BACKOFF_S = 0.1
 """Backoff window after the first transport failure."""
@@ -148,7 +149,7 @@ def parse_url(url: str) -> TcpLink | RtuLink:
     def bad(piece: str, reason: str) -> HardwareConfigError:
         return HardwareConfigError(f"machine URL {url!r}: {piece}: {reason}")
 
-    split = urlsplit(url)
+    split = split_url(url, "machine")
     if split.scheme not in ("modbus-tcp", "modbus-rtu"):
         raise bad("scheme", f"must be modbus-tcp:// or modbus-rtu://, got {split.scheme!r}")
     if split.fragment:

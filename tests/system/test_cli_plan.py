@@ -92,6 +92,8 @@ def test_human_output_shows_the_figures():
         ("--exposure-s", "0"),
         ("--blur-budget-px", "nan"),
         ("--object-distance-mm", "50"),
+        ("--speed-fraction", "1e308"),
+        ("--focal-length-mm", "1e-300"),
     ],
 )
 def test_a_bad_value_is_one_line_naming_the_option(option, value):

@@ -147,3 +147,16 @@ def test_triggers_from_the_simulated_microcontroller_space_the_frames_as_planned
         assert all(abs(crosshead[i] - crosshead[i - 1] - step_mm) < 1e-6 for i in steady)
         interval = times[steady[-1]] - times[steady[-1] - 1]
         assert interval == pytest.approx(summary["frame_period_s"], rel=1e-6)
+
+
+def test_the_recording_may_go_into_the_output_directory_the_run_makes(tmp_path):
+    config = tmp_path / "small.toml"
+    config.write_text("[sim]\nsensor_width_px = 320\nsensor_height_px = 640\n")
+    out = tmp_path / "new" / "run"
+    done = run(
+        "--sim", "--config", str(config), "--until-strain", "0.02", "--out", str(out),
+        "--record", str(out / "test.mcap"), "--json", timeout=300,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["recording_samples"] > 0
+    assert (out / "test.mcap").stat().st_size > 0 and (out / "strain.csv").is_file()

@@ -1,8 +1,10 @@
 """The `extensometer track` command as a user runs it: a real process, real image files."""
 
 import json
+import struct
 import subprocess
 import sys
+import zlib
 from pathlib import Path
 
 import cv2
@@ -121,6 +123,37 @@ def test_bad_inputs_end_in_one_line_naming_the_culprit(scene, tmp_path):
     assert "--subset" in error_of(
         track(reference, targets[0], "--points", points, "--subset", "40")
     )
+
+
+def _png_claiming(width: int, height: int) -> bytes:
+    """A PNG whose header claims `width` x `height` 8-bit grey pixels, with almost no data."""
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        body = kind + data
+        return struct.pack(">I", len(data)) + body + struct.pack(">I", zlib.crc32(body))
+
+    header = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    pixels = zlib.compress(b"\x00" * 100)
+    return (
+        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", pixels) + chunk(b"IEND", b"")
+    )
+
+
+@pytest.mark.parametrize(
+    ("option", "value"),
+    [("--prefilter-sigma", "1e308"), ("--blur-px", "1e9"), ("--search-radius", "100000")],
+)
+def test_values_beyond_their_physical_range_are_refused_naming_the_option(scene, option, value):
+    _, reference, targets, points = scene
+    assert option in error_of(track(reference, targets[0], "--points", points, option, value))
+
+
+def test_an_image_whose_header_claims_billions_of_pixels_is_refused_in_one_line(scene, tmp_path):
+    _, reference, targets, points = scene
+    huge = tmp_path / "huge.png"
+    huge.write_bytes(_png_claiming(60000, 60000))
+    assert "huge.png: not a readable image" in error_of(track(huge, targets[0], "--points", points))
+    assert "huge.png: not a readable image" in error_of(track(reference, huge, "--points", points))
 
 
 def test_measured_images_survive_a_later_bad_image(scene, tmp_path):

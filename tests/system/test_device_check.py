@@ -82,3 +82,17 @@ def test_machine_check_reads_the_controller_state_and_names_a_dead_one():
     assert f"modbus-tcp://127.0.0.1:{port}" in dead.stderr
     bad = _cli("machine-check", "--machine", "modbus-tcp://127.0.0.1:99999")
     assert bad.returncode == 2 and bad.stderr.startswith("extensometer: error: machine-check: ")
+
+
+@pytest.mark.parametrize(
+    ("command", "option", "url"),
+    [
+        ("camera-check", "--camera", "aravis://[::1"),
+        ("camera-check", "--camera", "v4l2://[x"),
+        ("machine-check", "--machine", "modbus-tcp://[::1"),
+    ],
+)
+def test_a_url_that_cannot_be_split_is_one_line_naming_it(command, option, url):
+    done = _cli(command, option, url)
+    assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+    assert f"URL {url!r}: Invalid IPv6 URL" in done.stderr and "Traceback" not in done.stderr

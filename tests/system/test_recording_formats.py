@@ -79,3 +79,16 @@ def test_a_recording_of_a_newer_format_is_refused_in_one_line(tmp_path):
     done = cli("replay", str(newer))
     assert done.returncode == 2 and done.stderr.count("\n") == 1
     assert f"{newer}: recording format version '{int(FORMAT_VERSION) + 1}'" in done.stderr
+
+
+def test_info_into_a_pipe_closed_early_ends_without_a_traceback():
+    process = subprocess.Popen(
+        [EXTENSOMETER, "info", str(VERSION_1)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    process.stdout.close()
+    stderr = process.stderr.read()
+    assert process.wait(timeout=120) == 141
+    assert stderr == ""
