@@ -44,7 +44,7 @@ from appliance.live.link import LiveLink
 from appliance.live.sd_notify import ServiceNotifier
 from appliance.live.viewer import RerunViewer
 from appliance.rig import check_devices
-from appliance.run.state import RunState, Transition
+from appliance.run.state import ExitStatus, RunState, Transition
 from appliance.runner import run_test
 from hal.errors import HardwareError
 
@@ -242,6 +242,7 @@ class Service:
         except (InputError, HardwareError) as error:
             self.log(f"{self._test_id}: not started: {error}")
             self.notifier.status(f"last test not started: {error}; {self._idle_status()}")
+            self.link.modbus.set_exit_status(ExitStatus.FAULT)
             self.link.modbus.set_run_state(RunState.FAULT)
             return
         summary = outcome.summary

@@ -9,6 +9,7 @@ set configuration keys are applied as `appliance.config.Override`s, checked as t
 from __future__ import annotations
 
 import argparse
+import datetime
 import sys
 from pathlib import Path
 
@@ -115,11 +116,13 @@ def viewer_of(config: Config):
 
 
 def run_one_test(args: argparse.Namespace) -> int:
-    """Run `run`; exit status 0 when the test ended by its criterion or a break, else 1."""
+    """Run `run`; exit status 0 when the test ended by its criterion, a break or a stop, else
+    1. The test is named `test-<UTC start time>` in its recording and the viewer."""
     from appliance.live.link import LiveLink
     from appliance.runner import run_test
 
     config = run_configuration(args)
+    test_id = f"test-{datetime.datetime.now(datetime.UTC):%Y%m%dT%H%M%SZ}"
     progress = None if args.json or not sys.stderr.isatty() else sys.stderr
     link = LiveLink(config, viewer=viewer_of(config))
     try:
@@ -131,6 +134,7 @@ def run_one_test(args: argparse.Namespace) -> int:
             progress=progress,
             record_path=args.record,
             hooks=link.hooks(),
+            test_id=test_id,
         )
     except HardwareError as error:
         raise InputError(f"run: {error}") from None

@@ -127,6 +127,8 @@ class LiveLink:
     def _transition(self, transition: Transition) -> None:
         with self._lock:
             self.state = transition.target
+        if transition.target is RunState.ARMED:
+            self.modbus.set_exit_status(None)
         self.modbus.set_run_state(transition.target)
         if self._on_transition is not None:
             self._on_transition(transition)
@@ -167,6 +169,7 @@ class _FactsTap:
         pass
 
     def end(self, result: LoopResult) -> None:
+        self._link.modbus.set_exit_status(result.exit_status)
         self._link._detach()
 
     def stats(self) -> dict[str, Any]:

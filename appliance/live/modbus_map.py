@@ -45,7 +45,7 @@ from typing import Literal
 
 from pymodbus.client.mixin import ModbusClientMixin
 
-from appliance.run.state import RunState
+from appliance.run.state import ExitStatus, RunState
 
 WordOrder = Literal["big", "little"]
 Value = int | float
@@ -166,7 +166,11 @@ STATUS_BIT_MEANINGS: tuple[tuple[StatusBit, str], ...] = (
         "strain is never flagged valid)",
     ),
     (StatusBit.TRACKING, "tracking (run state running)"),
-    (StatusBit.POINT_LOST, "point lost (a point was lost in the latest sample)"),
+    (
+        StatusBit.POINT_LOST,
+        "point lost (a point was lost in the latest sample; bits 2, 3 and 7 describe the "
+        "latest sample while the run is running or stopping, and are clear otherwise)",
+    ),
     (StatusBit.REFERENCE_UPDATED, "reference updated (in the latest sample)"),
     (StatusBit.CALIBRATING, "calibrating (run state armed: taking the reference)"),
     (StatusBit.FAULT, "fault (run state fault)"),
@@ -180,6 +184,16 @@ STATUS_BIT_MEANINGS: tuple[tuple[StatusBit, str], ...] = (
         "force and crosshead are NaN)",
     ),
 )
+
+EXIT_STATUS_CODES: Mapping[ExitStatus, int] = {
+    ExitStatus.COMPLETED: 1,
+    ExitStatus.BREAK: 2,
+    ExitStatus.STOPPED: 3,
+    ExitStatus.ABORTED: 4,
+    ExitStatus.FAULT: 5,
+}
+"""How the last test ended -> code of the `exit_status` register (0: none yet, or a test is
+running)."""
 
 RUN_STATE_CODES: Mapping[RunState, int] = {
     RunState.IDLE: 0,
@@ -221,6 +235,15 @@ _STATUS_TEXT = "Bits: " + "; ".join(
     f"{bit.bit_length() - 1} {text}" for bit, text in STATUS_BIT_MEANINGS
 )
 _RUN_STATE_TEXT = "Run state: " + _codes([(c, s.value) for s, c in RUN_STATE_CODES.items()])
+_EXIT_STATUS_TEXT = (
+    "How the last test ended: "
+    + _codes(
+        [(0, "none yet, or a test is under way")]
+        + [(c, s.value) for s, c in EXIT_STATUS_CODES.items()]
+    )
+    + " (stopped: by a stop command or the service's stop; the reason is in the recording "
+    "and the summary)"
+)
 _COMMAND_TEXT = (
     "Write "
     + _codes(list(COMMANDS.items()))
@@ -362,10 +385,11 @@ REGISTER_MAP: tuple[Register, ...] = (
         "ms",
         "Processing latency of the latest sample: frame delivered to strain computed",
     ),
+    Register("exit_status", 30, 1, RegisterType.UINT16, Access.READ, "", _EXIT_STATUS_TEXT),
     Register(
         "reserved",
-        30,
-        70,
+        31,
+        69,
         RegisterType.RESERVED,
         Access.READ,
         "",
@@ -415,9 +439,9 @@ MAP_SIZE = REGISTER_MAP[-1].end
 """Registers from address 0 to the end of the map."""
 
 MEASUREMENT_BLOCK: tuple[Register, ...] = tuple(
-    r for r in REGISTER_MAP if r.end <= BY_NAME["reserved"].address
+    r for r in REGISTER_MAP if r.end <= BY_NAME["exit_status"].address
 )
-"""The fixed block at 0 ... 29 that every sample rewrites (everything before `reserved`)."""
+"""The fixed block at 0 ... 29 that every sample rewrites (everything before `exit_status`)."""
 
 
 def encode(register: Register, value: Value, word_order: WordOrder = "big") -> list[int]:

@@ -78,6 +78,7 @@ from appliance.live import modbus_map
 from appliance.live.modbus_map import (
     BY_NAME,
     COMMANDS,
+    EXIT_STATUS_CODES,
     GAUGE_LENGTH_COMMAND,
     MAP_SIZE,
     MEASUREMENT_BLOCK,
@@ -88,7 +89,7 @@ from appliance.live.modbus_map import (
     RegisterType,
     StatusBit,
 )
-from appliance.run.state import RunState
+from appliance.run.state import ExitStatus, RunState
 
 if TYPE_CHECKING:
     from appliance.measure.frame_measurer import StrainSample
@@ -219,6 +220,7 @@ class StrainRegisterServer:
         self._status_at = BY_NAME["status"].address
         self._heartbeat_at = BY_NAME["heartbeat"].address
         self._run_state_at = BY_NAME["run_state"].address
+        self._exit_status_at = BY_NAME["exit_status"].address
         self._sample_parts = self._contiguous_parts(_SAMPLE_BLOCK)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
@@ -344,6 +346,13 @@ class StrainRegisterServer:
                 self._camera_lost = False
             self._write_state_registers()
 
+    def set_exit_status(self, status: ExitStatus | None) -> None:
+        """How the last test ended (None: none yet, or a test is under way)."""
+        with self._lock:
+            code = EXIT_STATUS_CODES[status] if status is not None else 0
+            self._image[self._exit_status_at] = code
+            self._beat()
+
     def set_camera_lost(self, lost: bool) -> None:
         """The camera went away (data valid cleared, `camera lost` set) or came back."""
         with self._lock:
@@ -396,7 +405,7 @@ class StrainRegisterServer:
     def _write_state_registers(self) -> None:
         """Status, run state and heartbeat from the current state (caller holds the lock)."""
         state = self._state
-        bits = self._sample_bits
+        bits = self._sample_bits if state in _VALID_STATES else StatusBit(0)
         if self._camera_lost:
             bits |= StatusBit.CAMERA_LOST
         elif self._sample_valid and state in _VALID_STATES:

@@ -200,8 +200,8 @@ class MeasurementLoop:
         self._lock = threading.Lock()
 
     def request_stop(self, reason: str = "operator stop") -> None:
-        """Ask the run to end normally (thread-safe)."""
-        self._finish(ExitStatus.COMPLETED, reason)
+        """Stop the run before its criterion; it ends STOPPED with `reason` (thread-safe)."""
+        self._finish(ExitStatus.STOPPED, reason)
 
     def request_zero(self) -> None:
         """Zero the strain at the next measured frame (thread-safe); see

@@ -35,8 +35,10 @@ class RunState(enum.Enum):
 class ExitStatus(enum.StrEnum):
     """How a test ended: the summary's, the recording's and the viewer's `exit_status`.
 
-    COMPLETED: its stop criterion (strain, time or frame limit) or an operator's stop.
+    COMPLETED: its stop criterion (strain, time or frame limit).
     BREAK: the specimen broke (a force drop, or a gauge mark lost for several frames).
+    STOPPED: stopped before its criterion by a stop command (the controller's, the service's
+        on SIGTERM); what was measured is kept and valid.
     ABORTED: interrupted by the operator; what was measured so far is kept.
     FAULT: a device or the measurement failed; what was measured so far is kept.
     DAMAGED: a replay stopped at damage in its recording.
@@ -44,14 +46,16 @@ class ExitStatus(enum.StrEnum):
 
     COMPLETED = "completed"
     BREAK = "break"
+    STOPPED = "stopped"
     ABORTED = "aborted"
     FAULT = "fault"
     DAMAGED = "damaged"
 
     @property
     def ended_normally(self) -> bool:
-        """Whether the test ran to its end (COMPLETED or BREAK): exit status 0 of `run`."""
-        return self in (ExitStatus.COMPLETED, ExitStatus.BREAK)
+        """Whether the test ended as asked (COMPLETED, BREAK or STOPPED): exit status 0 of
+        `run`."""
+        return self in (ExitStatus.COMPLETED, ExitStatus.BREAK, ExitStatus.STOPPED)
 
 
 class RunEvent(enum.Enum):

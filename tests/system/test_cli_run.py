@@ -160,3 +160,11 @@ def test_the_recording_may_go_into_the_output_directory_the_run_makes(tmp_path):
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout)["recording_samples"] > 0
     assert (out / "test.mcap").stat().st_size > 0 and (out / "strain.csv").is_file()
+    info = subprocess.run(
+        [EXTENSOMETER, "info", str(out / "test.mcap"), "--json"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
+    assert json.loads(info.stdout)["test_id"].startswith("test-20")

@@ -28,7 +28,7 @@ from appliance.live import modbus_map
 from appliance.live.modbus_map import BY_NAME, RUN_STATE_CODES, StatusBit
 from appliance.live.modbus_server import ServerStartError, StrainRegisterServer
 from appliance.measure.tracking import TrackStatus
-from appliance.run.state import RunState
+from appliance.run.state import ExitStatus, RunState
 from hal.machine.base import MachineState
 from tests.system.modbus_peers import (
     free_tcp_port,
@@ -199,7 +199,7 @@ def test_status_bits_and_run_state_code_follow_the_state_and_the_latest_sample(c
     server.set_run_state(RunState.STOPPING)
     assert state_words() == (int(every_sample_bit), 3)
     server.set_run_state(RunState.IDLE)
-    assert state_words() == (int(StatusBit.POINT_LOST | StatusBit.REFERENCE_UPDATED), 0)
+    assert state_words() == (0, 0), "the latest sample's bits are cleared once no test runs"
     server.set_run_state(RunState.RUNNING)
     server.publish(make_sample(data_valid=False, machine=MACHINE), None)
     assert state_words() == (int(StatusBit.TRACKING), 2)
@@ -214,6 +214,18 @@ def test_status_bits_and_run_state_code_follow_the_state_and_the_latest_sample(c
     server.set_camera_lost(True)
     server.set_run_state(RunState.ARMED)
     assert state_words()[0] & StatusBit.CAMERA_LOST == 0
+    server.close()
+
+
+def test_the_exit_status_register_says_how_the_last_test_ended(commands):
+    server = StrainRegisterServer(ModbusConfig(), commands)
+    exit_status = BY_NAME["exit_status"].address
+    assert server.read_registers(exit_status, 1) == [0]
+    for status, code in ((ExitStatus.STOPPED, 3), (ExitStatus.BREAK, 2), (ExitStatus.FAULT, 5)):
+        server.set_exit_status(status)
+        assert server.read_registers(exit_status, 1) == [code]
+    server.set_exit_status(None)
+    assert server.read_registers(exit_status, 1) == [0]
     server.close()
 
 

@@ -184,6 +184,37 @@ def test_a_stalled_measurement_stops_the_watchdog_and_sigterm_still_closes_the_r
     assert replayed["max_abs_diff_to_recorded"] == 0.0
 
 
+def test_a_stop_command_and_sigterm_end_a_test_as_stopped_with_their_reason(tmp_path):
+    port = free_tcp_port()
+    config = _config(
+        tmp_path, port, service=f'state_directory = "{tmp_path / "state"}"', run="until_strain = 0"
+    )
+    with NotifyHarness([EXTENSOMETER, "serve", "--config", str(config)]) as service:
+        service.wait_for("READY=1", timeout=180)
+        for stop in ("modbus", "signal"):
+            before = _registers(port)["frame"]
+            start = mbpoll_tcp(port, "-r", "100", "-t", "4", write=["1"])
+            assert start.returncode == 0, start.stdout + start.stderr
+            _wait_registers(
+                port, lambda r, b=before: r["status"] & STATUS_TRACKING and r["frame"] != b, 60
+            )
+            if stop == "modbus":
+                stopped = mbpoll_tcp(port, "-r", "100", "-t", "4", write=["2"])
+                assert stopped.returncode == 0, stopped.stdout + stopped.stderr
+                service.wait_for(
+                    lambda n: n.value("STATUS", "").startswith("last test stopped"), 60
+                )
+                assert mbpoll_read_tcp(port, "-r", "30", "-c", "1", "-t", "4")[30] == "3"
+            else:
+                assert service.terminate(timeout=60) == 0
+    summaries = sorted((tmp_path / "state").glob("test-*.summary.json"))
+    assert len(summaries) == 2
+    for path, reason in zip(summaries, ("stop command", "SIGTERM"), strict=True):
+        summary = json.loads(path.read_text())
+        assert summary["exit_status"] == "stopped" and reason in summary["reason"]
+        assert summary["frames_processed"] > 0
+
+
 @pytest.mark.parametrize(
     ("camera", "watchdog_usec", "message"),
     [

@@ -14,6 +14,7 @@ from pymodbus.client.mixin import ModbusClientMixin
 from appliance.live import modbus_map
 from appliance.live.modbus_map import (
     BY_NAME,
+    EXIT_STATUS_CODES,
     MAP_SIZE,
     MEASUREMENT_BLOCK,
     REGISTER_MAP,
@@ -23,7 +24,7 @@ from appliance.live.modbus_map import (
     RegisterType,
     StatusBit,
 )
-from appliance.run.state import RunState
+from appliance.run.state import ExitStatus, RunState
 
 README = Path(__file__).resolve().parents[2] / "appliance" / "live" / "README.md"
 SECTION = "## Modbus register map"
@@ -63,8 +64,10 @@ def test_fixed_block_and_command_block_are_at_the_documented_addresses():
     for name, (address, count, kind) in FIXED_BLOCK.items():
         register = BY_NAME[name]
         assert (register.address, register.count, register.data_type) == (address, count, kind)
+    exit_status = BY_NAME["exit_status"]
+    assert (exit_status.address, exit_status.count, exit_status.access) == (30, 1, Access.READ)
     reserved = BY_NAME["reserved"]
-    assert (reserved.address, reserved.end, reserved.access) == (30, 100, Access.READ)
+    assert (reserved.address, reserved.end, reserved.access) == (31, 100, Access.READ)
     writable = {r.name for r in REGISTER_MAP if r.writable}
     assert writable == {"command", "gauge_length_setpoint_mm"}
     assert BY_NAME["command"].choices == (1, 2, 3)
@@ -78,6 +81,8 @@ def test_fixed_block_and_command_block_are_at_the_documented_addresses():
 def test_codes_are_distinct_and_every_run_state_has_one():
     assert set(RUN_STATE_CODES) == set(RunState)
     assert sorted(RUN_STATE_CODES.values()) == list(range(6))
+    assert set(EXIT_STATUS_CODES) == set(ExitStatus) - {ExitStatus.DAMAGED}
+    assert sorted(EXIT_STATUS_CODES.values()) == list(range(1, 6))
     assert [int(bit) for bit in StatusBit] == [1, 2, 4, 8, 16, 32, 64, 128]
 
 
@@ -131,7 +136,7 @@ def test_counters_wrap_and_block_encoding_matches_entry_by_entry():
             w for r in MEASUREMENT_BLOCK for w in modbus_map.encode(r, values[r.name], order)
         ]
         assert block == one_by_one
-        assert len(block) == BY_NAME["reserved"].address
+        assert len(block) == BY_NAME["exit_status"].address
     with pytest.raises(ValueError, match="contiguous"):
         modbus_map.encode_block((BY_NAME["axial_strain"], BY_NAME["status"]), values)
 

@@ -91,6 +91,7 @@ INVALID_COLOUR = (230, 30, 30)
 EXIT_LEVELS = {
     ExitStatus.COMPLETED: rr.TextLogLevel.INFO,
     ExitStatus.BREAK: rr.TextLogLevel.INFO,
+    ExitStatus.STOPPED: rr.TextLogLevel.INFO,
     ExitStatus.ABORTED: rr.TextLogLevel.WARN,
     ExitStatus.FAULT: rr.TextLogLevel.ERROR,
 }
