@@ -53,7 +53,7 @@ from hal.camera.base import Frame
 if TYPE_CHECKING:
     from appliance.sim.world import GaugeTruth
 
-TRUTH_COLUMNS = ("true_engineering_strain", "true_elongation_mm", "strain_error")
+TRUTH_COLUMNS = ("truth_strain", "truth_elongation_mm", "strain_error")
 NO_HOOKS = RunHooks()
 
 
@@ -178,15 +178,15 @@ class _SampleLog:
     def latest_truth(self, sample: StrainSample) -> tuple[float, float]:
         """(true strain, true elongation mm) of the sample just recorded."""
         latest = self.records[-1]
-        return latest.true_strain, latest.true_elongation_mm
+        return latest.truth_strain, latest.truth_elongation_mm
 
     def truth_columns(self, sample: StrainSample) -> dict[str, float]:
         """The strain file's truth columns of the sample just recorded."""
         latest = self.records[-1]
         return {
-            "true_engineering_strain": latest.true_strain,
-            "true_elongation_mm": latest.true_elongation_mm,
-            "strain_error": latest.strain - latest.true_strain,
+            "truth_strain": latest.truth_strain,
+            "truth_elongation_mm": latest.truth_elongation_mm,
+            "strain_error": latest.strain - latest.truth_strain,
         }
 
 

@@ -11,8 +11,9 @@ a calibration device) it adds the errors:
   samples whose true elongation is below `small_elongation_um` (300 um: the range where
   ISO 9513's absolute limits decide);
 * `iso9513_class`: the best ISO 9513 class whose bias limits every valid sample meets;
-* `lost_points`: point-frames not measured, over valid samples (a frame of the broken
-  specimen is not valid, and its points are not counted).
+* `lost_points`: point-frames not measured, over every sample (the sum of the strain file's
+  `points_lost` column, and of the recording's); `lost_points_in_valid_samples` the same over
+  valid samples only (a frame of the broken specimen is not valid).
 """
 
 from __future__ import annotations
@@ -45,8 +46,9 @@ class SampleRecord:
         valid: the data-valid flag.
         points_lost: points not measured in the frame.
         reference_updates: references replaced after the frame.
-        true_strain: true engineering strain (NaN when unknown).
-        true_elongation_mm: true elongation, mm (NaN when unknown).
+        truth_strain: the engineering strain the truth gives (a simulation's, a calibrator's;
+            NaN when unknown).
+        truth_elongation_mm: the elongation the truth gives, mm (NaN when unknown).
     """
 
     strain: float
@@ -54,15 +56,15 @@ class SampleRecord:
     valid: bool
     points_lost: int
     reference_updates: int
-    true_strain: float = math.nan
-    true_elongation_mm: float = math.nan
+    truth_strain: float = math.nan
+    truth_elongation_mm: float = math.nan
 
     @classmethod
     def of(
         cls,
         sample: StrainSample,
-        true_strain: float = math.nan,
-        true_elongation_mm: float = math.nan,
+        truth_strain: float = math.nan,
+        truth_elongation_mm: float = math.nan,
     ) -> SampleRecord:
         """The record of a measured sample, with its truth where known."""
         return cls(
@@ -71,8 +73,8 @@ class SampleRecord:
             valid=sample.data_valid,
             points_lost=sample.points_lost,
             reference_updates=sample.reference_updates,
-            true_strain=true_strain,
-            true_elongation_mm=true_elongation_mm,
+            truth_strain=truth_strain,
+            truth_elongation_mm=truth_elongation_mm,
         )
 
 
@@ -88,12 +90,13 @@ class RunSummary:
     latency_ms_p99: float | None
     tracking_fps: float | None
     final_strain: float | None
-    true_final_strain: float | None
+    truth_final_strain: float | None
     max_abs_strain_error: float | None
     max_rel_strain_error: float | None
     max_elongation_error_um: float | None
     max_elongation_error_um_below_300um: float | None
     lost_points: int
+    lost_points_in_valid_samples: int
     invalid_samples: int
     reference_updates: int
     iso9513_class: str | None
@@ -103,11 +106,11 @@ class RunSummary:
         """Summarise a run from the loop's result and its per-sample records."""
         latency = np.asarray(result.latencies_s) * 1e3
         valid = [r for r in records if r.valid and math.isfinite(r.strain)]
-        truthful = [r for r in valid if math.isfinite(r.true_strain)]
+        truthful = [r for r in valid if math.isfinite(r.truth_strain)]
         strain = np.array([r.strain for r in truthful])
-        true = np.array([r.true_strain for r in truthful])
+        true = np.array([r.truth_strain for r in truthful])
         elong = np.array([r.elongation_mm for r in truthful]) * 1e3
-        true_elong = np.array([r.true_elongation_mm for r in truthful]) * 1e3
+        true_elong = np.array([r.truth_elongation_mm for r in truthful]) * 1e3
         strain_error = np.abs(strain - true)
         elong_error = np.abs(elong - true_elong)
         large = np.abs(strain) > REL_ERROR_MIN_STRAIN
@@ -125,12 +128,13 @@ class RunSummary:
                 else None
             ),
             final_strain=valid[-1].strain if valid else None,
-            true_final_strain=truthful[-1].true_strain if truthful else None,
+            truth_final_strain=truthful[-1].truth_strain if truthful else None,
             max_abs_strain_error=_stat(np.max, strain_error),
             max_rel_strain_error=_stat(np.max, strain_error[large] / np.abs(strain[large])),
             max_elongation_error_um=_stat(np.max, elong_error),
             max_elongation_error_um_below_300um=_stat(np.max, elong_error[small]),
-            lost_points=sum(r.points_lost for r in valid),
+            lost_points=sum(r.points_lost for r in records),
+            lost_points_in_valid_samples=sum(r.points_lost for r in valid),
             invalid_samples=sum(not r.valid for r in records),
             reference_updates=sum(r.reference_updates for r in records),
             iso9513_class=best_class(elong, true_elong) if truthful else None,

@@ -16,7 +16,7 @@ SUMMARY_KEYS = (
     "latency_ms_p50",
     "latency_ms_p99",
     "final_strain",
-    "true_final_strain",
+    "truth_final_strain",
     "max_abs_strain_error",
     "max_rel_strain_error",
     "max_elongation_error_um",
@@ -51,6 +51,9 @@ def test_short_rubber_test_meets_the_strain_bounds(tmp_path):
     assert json.loads((tmp_path / "summary.json").read_text()) == summary
     rows = list(csv.DictReader((tmp_path / "strain.csv").open()))
     assert len(rows) == summary["frames_processed"]
+    assert sum(int(r["points_lost"]) for r in rows) == summary["lost_points"]
+    assert sum(r["data_valid"] == "0" for r in rows) == summary["invalid_samples"]
+    assert sum(int(r["reference_updates"]) for r in rows) == summary["reference_updates"]
     errors = [abs(float(r["strain_error"])) for r in rows]
     bounds = [max(0.005 * abs(float(r["engineering_strain"])), 1.5e-3 / 25.0) for r in rows]
     assert all(e <= b for e, b in zip(errors, bounds, strict=True))
@@ -80,7 +83,7 @@ def test_the_simulated_world_is_deterministic_for_a_seed(tmp_path):
         )
         assert done.returncode == 0, done.stderr
         rows = list(csv.DictReader((tmp_path / name / "strain.csv").open()))
-        outputs.append([(r["engineering_strain"], r["true_engineering_strain"]) for r in rows])
+        outputs.append([(r["engineering_strain"], r["truth_strain"]) for r in rows])
     assert outputs[0] == outputs[1]
 
 

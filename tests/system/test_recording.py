@@ -72,7 +72,7 @@ def test_replay_reproduces_the_recorded_strain_bit_for_bit(recorded):
     assert replay["max_abs_diff_to_recorded"] == 0.0
     assert replay["samples_differing"] == 0 and replay["damage"] is None
     assert replay["frames_reading_unrecorded_pixels"] == 0
-    for key in ("frames_processed", "final_strain", "true_final_strain", "max_abs_strain_error"):
+    for key in ("frames_processed", "final_strain", "truth_final_strain", "max_abs_strain_error"):
         assert replay[key] == run[key], key
     assert replay["recorded_exit_status"] == run["exit_status"] == "completed"
 
@@ -87,7 +87,7 @@ def test_the_recording_holds_every_sample_of_the_strain_file_exactly(recorded):
     for sample, row in zip(samples, rows, strict=True):
         assert repr(sample.strain["engineering_strain"]) == row["engineering_strain"]
         assert sample.strain["frame_id"] == int(row["frame_id"])
-        assert sample.truth["true_engineering_strain"] == float(row["true_engineering_strain"])
+        assert sample.truth["true_engineering_strain"] == float(row["truth_strain"])
         assert set(sample.windows) == {0, 1}
     assert reader.meta("run_stop")["exit_status"] == "completed"
 
