@@ -140,21 +140,24 @@ def _finite_or_none(value: float) -> float | None:
 
 
 def _image_record(path: str, xy: np.ndarray, result: ICGNResult) -> dict:
+    """One image's points: a point that was not found (any status but converged) has no
+    displacement or gradient (null), only its status saying why, its ZNCC and iterations."""
     records = []
     for k in range(len(xy)):
+        status = PointStatus(int(result.status[k]))
+        found = status is PointStatus.CONVERGED
+        shape = {
+            name: _finite_or_none(getattr(result, name)[k]) if found else None
+            for name in ("u", "v", "ux", "uy", "vx", "vy")
+        }
         records.append(
             {
                 "x": float(xy[k, 0]),
                 "y": float(xy[k, 1]),
-                "u": _finite_or_none(result.u[k]),
-                "v": _finite_or_none(result.v[k]),
-                "ux": _finite_or_none(result.ux[k]),
-                "uy": _finite_or_none(result.uy[k]),
-                "vx": _finite_or_none(result.vx[k]),
-                "vy": _finite_or_none(result.vy[k]),
+                **shape,
                 "zncc": _finite_or_none(result.zncc[k]),
                 "iterations": int(result.iterations[k]),
-                "status": PointStatus(int(result.status[k])).name.lower(),
+                "status": status.name.lower(),
             }
         )
     return {"path": str(path), "points": records}

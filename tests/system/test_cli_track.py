@@ -125,6 +125,24 @@ def test_bad_inputs_end_in_one_line_naming_the_culprit(scene, tmp_path):
     )
 
 
+def test_a_point_not_found_has_no_displacement_only_a_status_saying_why(scene, tmp_path):
+    _, reference, targets, _ = scene
+    flat = tmp_path / "flat.png"
+    image = cv2.imread(str(reference), cv2.IMREAD_UNCHANGED)
+    image[50:110, 50:110] = 128
+    cv2.imwrite(str(flat), image)
+    points = tmp_path / "points.csv"
+    points.write_text("x,y\n80,80\n160,80\n")
+    done = track(flat, targets[0], "--points", points, "--subset", "31", "--json")
+    assert done.returncode == 0, done.stderr
+    lost, found = json.loads(done.stdout)["images"][0]["points"]
+    assert lost["status"] == "flat_subset"
+    assert all(lost[key] is None for key in ("u", "v", "ux", "uy", "vx", "vy"))
+    assert found["status"] == "converged" and abs(found["u"] - SHIFTS[0][0]) < 0.05
+    table = track(flat, targets[0], "--points", points, "--subset", "31")
+    assert "flat_subset" in table.stdout and "-50" not in table.stdout
+
+
 def _png_claiming(width: int, height: int) -> bytes:
     """A PNG whose header claims `width` x `height` 8-bit grey pixels, with almost no data."""
 
