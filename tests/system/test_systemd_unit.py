@@ -226,6 +226,7 @@ def test_the_example_configuration_loads_with_the_service_defaults():
     config = load_config(EXAMPLE_CONFIG)
     assert config.camera.url == "sim://camera" and config.machine.url == "sim://machine"
     assert config.modbus.tcp == "127.0.0.1:5020"
+    assert config.modbus.allow_write_from == ("127.0.0.1", "::1"), "writes from this PC only"
     assert config.rerun.serve == "127.0.0.1:9876"
     assert config.record.path == ""
     state_directory = only(unit_entries(UNIT.read_text())["Service"], "StateDirectory")
