@@ -12,10 +12,12 @@ says so with `max_abs_diff_to_recorded` (largest difference of the axial enginee
 0.0 when exact; infinite, null in JSON, when it is NaN on one side only) and
 `samples_differing` (samples in which any recorded quantity differs: strains, elongation,
 gauge length, Poisson's ratio, data-valid flag). With an
-override (`--config FILE`: tables and keys replacing the recorded ones, e.g. another subset
+override (`--config FILE`: `[tracking]` keys replacing the recorded ones, e.g. another subset
 size or search) the test is measured again; pixels the new tracking needs but the recording
 does not hold read as zero, and `frames_reading_unrecorded_pixels` counts the frames where
-that happened. The points and their marks always come from the recording.
+that happened. The points and their marks always come from the recording, so an override of
+any other table (`[gauge] length_mm`, the camera, the optics, ...) cannot be applied and is
+refused in one line naming it, never silently ignored.
 
 A truncated or corrupted file replays up to the damage; the summary's `damage` says where.
 """
@@ -68,11 +70,39 @@ class _Setup:
     dtype: np.dtype
 
 
+REPLAYABLE_TABLES = ("tracking",)
+"""The configuration tables a replay can apply: how the recorded pixels are measured."""
+
+_WHY_NOT_REPLAYABLE = {
+    "gauge": "the marks were placed when the test ran, and only the pixels around them recorded",
+    "camera": "the frames are recorded as they were taken",
+    "trigger": "the frames are recorded as they were taken",
+    "optics": "the recorded calibration gives the scale",
+    "machine": "the machine's readings are recorded",
+    "sim": "the simulated world's frames are recorded",
+    "run": "a replay measures every recorded sample",
+    "rerun": "a replay's viewer is set with --rerun-serve, --rerun-connect or --rerun-save",
+}
+
+
+def _checked_override(path: Path) -> dict:
+    """The override file's tables; InputError naming the first table or key a replay cannot
+    apply (every key outside `REPLAYABLE_TABLES`)."""
+    table = read_config_table(path)
+    for section, keys in table.items():
+        if section in REPLAYABLE_TABLES:
+            continue
+        why = _WHY_NOT_REPLAYABLE.get(section, "a replay does not use it")
+        key = f" {next(iter(keys))}" if isinstance(keys, dict) and keys else ""
+        raise InputError(f"{path}: [{section}]{key}: cannot be applied to a replay ({why})")
+    return table
+
+
 def _setup(reader: RecordingReader, override: Path | None) -> _Setup:
     reader.check_format()
     table = config_table(reader)
     if override is not None:
-        table = merge_tables(table, read_config_table(override))
+        table = merge_tables(table, _checked_override(override))
     config = config_from_table(table, str(override) if override else f"{reader.path} (config)")
     start = reader.require("run_start")
     calibration_meta = reader.require("calibration")
@@ -170,14 +200,18 @@ def replay_recording(
 
     Args:
         path: the recording.
-        override: a TOML file whose tables and keys replace the recorded configuration's.
+        override: a TOML file whose tables and keys replace the recorded configuration's;
+            only `REPLAYABLE_TABLES` (how the pixels are measured) can be applied.
         outputs: outputs following the replay as they would a live test (a viewer).
         progress: a terminal stream for a progress line; None = quiet.
 
     Raises:
-        InputError: the file is not a readable recording, or the override is bad.
+        InputError: the file is not a readable recording, or the override is bad or cannot be
+            applied to a replay (one line naming its table and key).
     """
     path = Path(path)
+    if override is not None:
+        _checked_override(override)
     reader = RecordingReader(path)
     try:
         return _replay(reader, override, outputs, progress)

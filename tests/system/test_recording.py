@@ -173,16 +173,23 @@ def test_an_override_measures_again(recorded, tmp_path):
         (["info", "absent.mcap"], "absent.mcap: no such recording"),
         (["replay", "{csv}"], "strain.csv: not an MCAP file"),
         (["replay", "{mcap}", "--config", "{bad_toml}"], "[tracking] subset_px: must be odd"),
+        (
+            ["replay", "{mcap}", "--config", "{gauge_toml}"],
+            "[gauge] length_mm: cannot be applied to a replay",
+        ),
         (["run", "--sim", "--record", "{mcap}"], "exists (a recording is never overwritten)"),
     ],
 )
 def test_bad_inputs_give_one_line_naming_the_culprit(recorded, tmp_path, args, culprit):
     bad_toml = tmp_path / "bad.toml"
     bad_toml.write_text("[tracking]\nsubset_px = 40\n")
+    gauge_toml = tmp_path / "gauge.toml"
+    gauge_toml.write_text("[gauge]\nlength_mm = 20\n")
     names = {
         "csv": str(recorded["dir"] / "strain.csv"),
         "mcap": str(recorded["path"]),
         "bad_toml": str(bad_toml),
+        "gauge_toml": str(gauge_toml),
     }
     done = cli(*[a.format(**names) for a in args], timeout=120)
     assert done.returncode == 2
