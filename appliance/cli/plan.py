@@ -16,7 +16,12 @@ import sys
 from appliance.cli import arguments
 from appliance.config import CameraConfig, OpticsConfig
 from appliance.errors import InputError, ParameterError
-from appliance.plan.exposure import DEFAULT_MAX_PERIOD_S, motion_blur_length, plan_exposure
+from appliance.plan.exposure import (
+    DEFAULT_MAX_PERIOD_S,
+    motion_blur_length,
+    paced,
+    plan_exposure,
+)
 from appliance.plan.optics import Optics
 
 OPTIONS = {
@@ -113,6 +118,13 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         default=DEFAULT_MAX_PERIOD_S,
         help=f"longest frame period wanted, s ({DEFAULT_MAX_PERIOD_S:g}; the period at speed 0)",
     )
+    plan.add_argument(
+        "--min-frame-rate-hz",
+        type=arguments.like_key(CameraConfig, "min_frame_rate_hz"),
+        default=CameraConfig.min_frame_rate_hz,
+        help=f"lowest frame rate, the rate the controller gets strain at, Hz "
+        f"({CameraConfig.min_frame_rate_hz:g}; as [camera] min_frame_rate_hz in a test)",
+    )
     plan.add_argument("--json", action="store_true", help="print JSON on stdout")
     plan.set_defaults(handler=plan_exposure_for_speed)
 
@@ -138,6 +150,13 @@ def _plan(args: argparse.Namespace) -> int:
         max_exposure_s=args.max_exposure_us * 1e-6,
         max_period_s=args.max_period_s,
         speed_fraction=args.speed_fraction,
+    )
+    plan = paced(
+        plan,
+        optics,
+        exposure_s=plan.exposure_s,
+        min_frame_rate_hz=args.min_frame_rate_hz,
+        blur_budget_px=args.blur_budget_px,
     )
     document = {
         "image_distance_mm": optics.image_distance_mm,

@@ -107,8 +107,9 @@ class ExposurePlan:
         exposure_limit: what set the exposure: "blur_budget", "max_exposure" (the budget
             allows longer) or "min_exposure" (the budget wants shorter, see `budget_met`).
         period_limit: what set the period: "capture_range", "max_period" (speed 0 or so
-            slow that the capture range allows longer) or "exposure" (see
-            `period_covers_exposure`).
+            slow that the capture range allows longer), "exposure" (see
+            `period_covers_exposure`); after `paced`, also "min_frame_rate" (the rate the
+            controller receives strain at) or "frame_rate" (a rate set outright).
     """
 
     speed_mm_min: float
@@ -121,7 +122,7 @@ class ExposurePlan:
     budget_met: bool
     period_covers_exposure: bool
     exposure_limit: Literal["blur_budget", "max_exposure", "min_exposure"]
-    period_limit: Literal["capture_range", "max_period", "exposure"]
+    period_limit: Literal["capture_range", "max_period", "exposure", "min_frame_rate", "frame_rate"]
 
     @property
     def frame_rate_hz(self) -> float:
@@ -297,17 +298,49 @@ def exposure_for(config: Config, optics: Optics, speed_mm_min: float) -> Exposur
     except ParameterError as exc:
         raise InputError(f"{_CONFIGURED_BY[exc.parameter]}: {exc}") from None
     exposure_s = plan.exposure_s if camera.exposure_us is None else camera.exposure_us * 1e-6
-    if camera.frame_rate_hz is None:
-        period_s = max(min(plan.frame_period_s, 1.0 / camera.min_frame_rate_hz), exposure_s)
-    else:
-        period_s = 1.0 / camera.frame_rate_hz
-    if exposure_s > period_s:
+    paced_plan = paced(
+        plan,
+        optics,
+        exposure_s=exposure_s,
+        min_frame_rate_hz=camera.min_frame_rate_hz,
+        blur_budget_px=camera.blur_budget_px,
+        frame_rate_hz=camera.frame_rate_hz,
+    )
+    if exposure_s > paced_plan.frame_period_s:
         raise InputError(
             f"[camera] exposure_us: {exposure_s * 1e6:g} exceeds the frame period "
-            f"{period_s * 1e6:g} us"
+            f"{paced_plan.frame_period_s * 1e6:g} us"
         )
-    blur = motion_blur_length(optics, speed_mm_min, exposure_s)
-    motion = motion_blur_length(optics, speed_mm_min, period_s).px
+    return paced_plan
+
+
+def paced(
+    plan: ExposurePlan,
+    optics: Optics,
+    *,
+    exposure_s: float,
+    min_frame_rate_hz: float,
+    blur_budget_px: float,
+    frame_rate_hz: float | None = None,
+) -> ExposurePlan:
+    """`plan` with the exposure in use and the frame period in use, and what they give.
+
+    The period is `frame_rate_hz`'s when it is given (the caller refuses one shorter than the
+    exposure); otherwise the plan's, shortened to 1 / `min_frame_rate_hz` (the rate the
+    controller receives strain at) but never below the exposure. `extensometer plan` and a
+    test (`exposure_for`) pace their plans with this one rule.
+    """
+    if frame_rate_hz is not None:
+        period_s, period_limit = 1.0 / frame_rate_hz, "frame_rate"
+    else:
+        period_s, period_limit = plan.frame_period_s, plan.period_limit
+        if period_s > 1.0 / min_frame_rate_hz:
+            period_s, period_limit = 1.0 / min_frame_rate_hz, "min_frame_rate"
+        if period_s < exposure_s:
+            period_s, period_limit = exposure_s, "exposure"
+    speed = plan.point_speed_mm_min
+    blur = motion_blur_length(optics, speed, exposure_s)
+    motion = motion_blur_length(optics, speed, period_s).px
     return dataclasses.replace(
         plan,
         exposure_s=exposure_s,
@@ -315,5 +348,6 @@ def exposure_for(config: Config, optics: Optics, speed_mm_min: float) -> Exposur
         blur_um=blur.um,
         blur_px=blur.px,
         motion_per_frame_px=motion,
-        budget_met=bool(blur.px <= camera.blur_budget_px),
+        budget_met=bool(blur.px <= blur_budget_px),
+        period_limit=period_limit,
     )

@@ -110,3 +110,35 @@ def test_a_bad_value_is_one_line_naming_the_option(option, value):
     assert lines[0].startswith("extensometer: error: plan: ")
     assert option in lines[0]
     assert "Traceback" not in done.stderr
+
+
+def test_plan_and_a_simulated_run_agree_on_exposure_and_frame_rate(tmp_path):
+    """Both pace the plan by the same rule (`[camera] min_frame_rate_hz`, 20 Hz by default)."""
+    from appliance.measure.tracking import TrackerSettings
+    from appliance.sim.world import PRESETS
+
+    optics = PRESETS["rubber"].optics
+    run = subprocess.run(
+        [EXTENSOMETER, "run", "--sim", "--until-strain", "0.002", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert run.returncode == 0, run.stderr
+    summary = json.loads(run.stdout)
+    done = plan(
+        "--focal-length-mm", str(optics.focal_length_mm),
+        "--object-distance-mm", str(optics.object_distance_mm),
+        "--pixel-size-um", str(optics.pixel_size_um),
+        "--exposure-s", "0.01",
+        "--speed-mm-min", str(summary["speed_mm_min"]),
+        "--capture-range-px", str(TrackerSettings().search_radius_px),
+        "--min-exposure-us", "100",
+        "--json",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    document = json.loads(done.stdout)
+    assert document["planned_frame_rate_hz"] == pytest.approx(summary["frame_rate_hz"])
+    assert document["planned_exposure_s"] * 1e6 == pytest.approx(summary["exposure_us"])
+    assert document["period_limit"] == "min_frame_rate"
