@@ -9,8 +9,10 @@ replay on the recorded pixels reproduces the recorded strain exactly:
    this frame's gauge lengths the new L0 first;
 3. the sample is *valid* when every axial gauge mark had a measured point and the force has
    not fallen as after a break (a frame of a broken specimen is not a strain);
-4. `ending` says whether the test is over: a break (force drop, or a mark lost for several
-   frames), the strain limit, a time or frame limit.
+4. `ending` says whether the test is over: a break (a force drop; where the machine gives no
+   force reading, inferred from a gauge mark lost for several frames), the strain limit, a
+   time or frame limit. A lost mark is not a break where the force is read: those samples
+   are not valid, and the test goes on.
 """
 
 from __future__ import annotations
@@ -105,8 +107,8 @@ class Ending:
     """Why a test ends by itself.
 
     Attributes:
-        broke: the specimen broke (a force drop, or a gauge mark lost for several frames);
-            False: a limit of `StopCriteria` was reached.
+        broke: the specimen broke (a force drop, or, without force readings, inferred from a
+            gauge mark lost for several frames); False: a limit of `StopCriteria` was reached.
         reason: one line.
     """
 
@@ -119,9 +121,10 @@ class BreakDetection:
     """How a break is recognised.
 
     A break is declared when the force has fallen below `force_drop_fraction` of its maximum
-    (once the maximum exceeded `min_peak_force_n`), or when a gauge mark has had no measured
-    point for `lost_mark_frames` consecutive frames after the strain passed `min_strain`
-    (the marks separating as the specimen snaps).
+    (once the maximum exceeded `min_peak_force_n`). Only where no force is read (no machine,
+    or a machine that reports none) is a break inferred instead from a gauge mark that had
+    no measured point for `lost_mark_frames` consecutive frames after a valid sample and
+    after the strain passed `min_strain` (the marks separating as the specimen snaps).
     """
 
     force_drop_fraction: float = 0.2
@@ -157,7 +160,9 @@ class FrameMeasurer:
         self._wall = wall
         self._axial_marks = (list(gauges.axial.first), list(gauges.axial.second))
         self.samples = 0
+        self.valid_samples = 0
         self.peak_force_n = 0.0
+        self._force_read = False
         self._lost_run = 0
         self._force_broken = False
         self._zero_pending = False
@@ -189,7 +194,8 @@ class FrameMeasurer:
         measured = tracked.measured
         marks_seen = all(measured[mark].any() for mark in self._axial_marks)
         detection = self.detection
-        if machine is not None:
+        if machine is not None and math.isfinite(machine.force_n):
+            self._force_read = True
             self.peak_force_n = max(self.peak_force_n, machine.force_n)
         self._force_broken = (
             machine is not None
@@ -218,6 +224,7 @@ class FrameMeasurer:
             metadata=frame.metadata,
         )
         self.samples += 1
+        self.valid_samples += sample.data_valid
         self._last = sample
         return sample
 
@@ -235,10 +242,16 @@ class FrameMeasurer:
             )
         if (
             criteria.until_break
+            and not self._force_read
+            and self.valid_samples > 0
             and self._lost_run >= detection.lost_mark_frames
             and (math.isnan(strain) or strain >= detection.min_strain)
         ):
-            return Ending(True, f"break: a gauge mark lost for {self._lost_run} frames")
+            return Ending(
+                True,
+                f"break inferred from a lost mark (no force reading): a gauge mark lost for "
+                f"{self._lost_run} frames",
+            )
         if criteria.until_strain is not None and strain >= criteria.until_strain:
             return Ending(False, f"strain {strain:.6g} reached {criteria.until_strain:g}")
         if criteria.max_time_s is not None and sample.time_s >= criteria.max_time_s:

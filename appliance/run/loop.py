@@ -95,6 +95,7 @@ class LoopResult:
         exit_status: how the run ended.
         reason: why the run ended, one line.
         frames_processed: samples measured.
+        valid_samples: samples with the data-valid flag.
         frames_dropped: frames lost: dropped on a full queue or missing from the camera's
             frame counter.
         latencies_s: per-sample latency, s.
@@ -109,6 +110,7 @@ class LoopResult:
     exit_status: ExitStatus = ExitStatus.COMPLETED
     reason: str = ""
     frames_processed: int = 0
+    valid_samples: int = 0
     frames_dropped: int = 0
     latencies_s: list[float] = field(default_factory=list)
     tracking_time_s: float = 0.0
@@ -292,6 +294,9 @@ class MeasurementLoop:
             where, exc = self._errors[0]
             result.exit_status = ExitStatus.FAULT
             result.reason = f"{where}: {type(exc).__name__}: {exc}"
+        elif result.exit_status.ended_normally and result.valid_samples == 0:
+            result.exit_status = ExitStatus.FAULT
+            result.reason = f"no valid sample was measured (the test ended: {result.reason})"
         current = self.state.state
         if result.exit_status is ExitStatus.FAULT:
             self.state.handle(RunEvent.FAULT, result.reason)
@@ -461,6 +466,7 @@ class MeasurementLoop:
                     sink(sample)
                 self._result.tracking_time_s += self._wall() - started
                 self._result.frames_processed = measurer.samples
+                self._result.valid_samples = measurer.valid_samples
                 self._result.latencies_s.append(sample.latency_s)
                 self._publish_sample(sample)
                 ending = measurer.ending(criteria)

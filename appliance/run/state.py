@@ -36,11 +36,13 @@ class ExitStatus(enum.StrEnum):
     """How a test ended: the summary's, the recording's and the viewer's `exit_status`.
 
     COMPLETED: its stop criterion (strain, time or frame limit).
-    BREAK: the specimen broke (a force drop, or a gauge mark lost for several frames).
+    BREAK: the specimen broke (a force drop; without force readings, inferred from a gauge
+        mark lost for several frames).
     STOPPED: stopped before its criterion by a stop command (the controller's, the service's
         on SIGTERM); what was measured is kept and valid.
     ABORTED: interrupted by the operator; what was measured so far is kept.
-    FAULT: a device or the measurement failed; what was measured so far is kept.
+    FAULT: a device or the measurement failed, or no valid sample was measured; what was
+        measured so far is kept.
     DAMAGED: a replay stopped at damage in its recording.
     """
 
