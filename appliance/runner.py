@@ -26,11 +26,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
+import numpy as np
+
 from appliance import __version__
 from appliance.config import Config
 from appliance.errors import InputError
 from appliance.measure.frame_measurer import StopCriteria, StrainSample, tracker_and_gauges
 from appliance.measure.gauges import Calibration, StrainGauges, marks_outside, place_marks
+from appliance.measure.image_quality import speckle_problem
 from appliance.measure.tracking import MarkTracker
 from appliance.plan.exposure import ExposurePlan, exposure_for
 from appliance.plan.pacing import ExposurePacer, Replan
@@ -48,7 +51,7 @@ from appliance.run.progress import ProgressLine
 from appliance.run.state import ExitStatus, RunStateMachine, Transition
 from appliance.run.strain_file import StrainCsvWriter
 from appliance.run.summary import RunOutcome, RunSummary, SampleRecord
-from hal.camera.base import Frame
+from hal.camera.base import Frame, PixelFormat
 
 if TYPE_CHECKING:
     from appliance.sim.world import GaugeTruth
@@ -135,6 +138,10 @@ def run_test(
                 until_strain=config.run.until_strain or None, until_break=config.run.until_break
             )
         )
+    except BaseException:
+        if recorder is not None:
+            recorder.close()
+        raise
     finally:
         if writer is not None:
             writer.close()
@@ -228,6 +235,7 @@ class _Reference:
         outside = marks_outside(points, reference.image.shape, config.tracking.min_subset_px)
         if outside is not None:
             raise InputError(f"[gauge] length_mm: {outside}: shorten the gauge or move its centre")
+        _check_speckle(reference.image, points, layout.marks, config)
         if rig.world is not None:
             self.samples.truth = rig.world.gauge_truth(points, layout.axial, reference)
         self.points_placed = len(points)
@@ -254,6 +262,29 @@ class _Reference:
         for output in self.outputs:
             output.begin(run_facts)
         return tracker, gauges
+
+
+def _check_speckle(
+    image: np.ndarray, points: np.ndarray, marks: tuple[tuple[int, ...], ...], config: Config
+) -> None:
+    """Refuse a reference in which a mark's subset holds no speckle the correlation can track
+    (`appliance.measure.image_quality`): a test on it would only measure invalid samples."""
+    full_scale = PixelFormat(config.camera.pixel_format).max_value
+    half = config.tracking.subset_px // 2
+    height, width = image.shape[:2]
+    for number, mark in enumerate(marks, start=1):
+        for x, y in points[list(mark)]:
+            col, row = round(x), round(y)
+            window = image[
+                max(row - half, 0) : min(row + half + 1, height),
+                max(col - half, 0) : min(col + half + 1, width),
+            ]
+            problem = speckle_problem(window, full_scale)
+            if problem is not None:
+                raise InputError(
+                    f"reference frame: mark {number} at ({x:.0f}, {y:.0f}) px cannot be "
+                    f"tracked: {problem}"
+                )
 
 
 def _run_facts(

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from appliance.config import Config, register_map_of
+from appliance.measure.image_quality import view_quality
 from appliance.plan.optics import configured_optics
 from hal.camera.base import Camera, CameraSettings, PixelFormat, TriggerInfo, TriggerMode
 from hal.errors import HardwareTimeout
@@ -91,7 +92,12 @@ def check_camera(
         `device_fps` (device timestamps), `lost` (frame-counter gaps), `timeouts`,
         `exposure_us` in force, `first_timestamp_ns`, `last_timestamp_ns`,
         `interval_ms` (p50/p99/max of arrival intervals), grey level `mean_grey`,
-        `saturated_fraction`, and the backend's `statistics` where it has them.
+        `saturated_fraction`, `sharpest_gradient` (the texture and focus of the last
+        frame's sharpest tiles, grey levels per px: `appliance.measure.image_quality`), the
+        backend's `statistics` where it has them, and the verdict: `fit` (bool) and
+        `problems` (one phrase each: a frame rate below 90 % of the one asked for, lost
+        frames, timeouts, timestamps not increasing, too dark, overexposed, no sharp
+        texture in view).
 
     Raises:
         HardwareError: the camera cannot be opened or configured, or sends nothing.
@@ -171,7 +177,29 @@ def check_camera(
     }
     if stats:
         report["statistics"] = stats
+    view = view_quality(last_image, in_force.pixel_format.max_value)
+    report["sharpest_gradient"] = view.sharpest_gradient * in_force.pixel_format.max_value
+    problems = list(_delivery_problems(report)) + list(view.problems)
+    report["fit"] = not problems
+    report["problems"] = problems
     return report
+
+
+def _delivery_problems(report: dict[str, Any]) -> list[str]:
+    """What the frames' delivery says against measuring with this camera."""
+    problems = []
+    rate = report["device_fps"] or report["fps"]
+    asked = report["requested_rate_hz"]
+    if rate is None or rate < 0.9 * asked:
+        shown = "unknown" if rate is None else f"{rate:.1f}"
+        problems.append(f"frame rate {shown} fps, below 90 % of the {asked:g} fps asked for")
+    if report["lost"]:
+        problems.append(f"{report['lost']} frames lost")
+    if report["timeouts"]:
+        problems.append(f"{report['timeouts']} fetches timed out")
+    if not report["timestamps_increasing"]:
+        problems.append("device timestamps not increasing")
+    return problems
 
 
 def check_machine(
@@ -236,6 +264,10 @@ def camera_report_lines(report: dict[str, Any]) -> list[str]:
         f" ({'increasing' if report['timestamps_increasing'] else 'NOT increasing'})",
         f"grey level         mean {report['mean_grey']:.1f}, "
         f"saturated {report['saturated_fraction'] * 100:.2f} %",
+        f"texture, focus     gradient {report['sharpest_gradient']:.2f} grey levels/px "
+        "(sharpest tiles, least textured direction)",
+        f"verdict            {'fit to measure' if report['fit'] else 'NOT fit to measure'}",
+        *(f"  problem          {problem}" for problem in report["problems"]),
     ]
     for key, value in (report.get("statistics") or {}).items():
         lines.append(f"  {key:24s} {value}")

@@ -30,9 +30,10 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
         description=(
             "Open the camera, free-run it, grab N frames and report image size, pixel "
             "format, the frame rate achieved, lost frames, device timestamps and grey "
-            "levels. The first command to run on a new installation. Exit status 1 when "
-            "the camera cannot be opened or sends nothing, or frames were lost; 2 for a "
-            "bad URL or setting."
+            "levels, and a verdict: whether the camera is fit to measure (rate, lost frames, "
+            "exposure, saturation, texture and focus). The first command to run on a new "
+            "installation. Exit status 1 when the camera cannot be opened or sends nothing, "
+            "or is not fit to measure (each problem named); 2 for a bad URL or setting."
         ),
     )
     camera_check.add_argument("--camera", metavar="URL", help="camera URL ([camera] url)")
@@ -91,7 +92,8 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
 
 
 def check_camera(args: argparse.Namespace) -> int:
-    """Run `camera-check`: exit status 1 when frames were lost or the camera is away."""
+    """Run `camera-check`: exit status 1 when the camera is away or not fit to measure (the
+    report's `problems`)."""
     config = arguments.configuration(
         args.config, args, arguments.option_overrides(args, CAMERA_OPTIONS)
     )
@@ -106,7 +108,7 @@ def check_camera(args: argparse.Namespace) -> int:
         print(f"extensometer: camera-check: {error}", file=sys.stderr)
         return 1
     _show(args, report, device_checks.camera_report_lines(report))
-    return 1 if report["lost"] > 0 else 0
+    return 0 if report["fit"] else 1
 
 
 def check_machine(args: argparse.Namespace) -> int:

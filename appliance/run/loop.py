@@ -47,6 +47,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from appliance.errors import InputError
 from appliance.measure.frame_measurer import (
     BreakDetection,
     FrameMeasurer,
@@ -211,7 +212,12 @@ class MeasurementLoop:
         self._zero_requested.set()
 
     def run(self, criteria: StopCriteria) -> LoopResult:
-        """Take the reference, measure until a stop criterion, a break, an abort or a fault."""
+        """Take the reference, measure until a stop criterion, a break, an abort or a fault.
+
+        Raises:
+            InputError: the set-up refused the reference frame (marks that do not fit, a
+                speckle that cannot be tracked): the run goes back to IDLE, nothing measured.
+        """
         self.state.handle(RunEvent.ARM, "reference")
         self.camera.arm()
         try:
@@ -221,6 +227,10 @@ class MeasurementLoop:
             self._last_timestamp_ns = reference.timestamp_ns
             self._last_delivered_s = time.monotonic()
             tracker, gauges = self.setup(reference)
+        except InputError as exc:
+            self.state.handle(RunEvent.DISARM, f"refused: {exc}")
+            self.camera.disarm()
+            raise
         except Exception as exc:  # noqa: BLE001 - a failed start is a FAULT with its reason
             return self._fail_before_start(exc)
         self.state.handle(RunEvent.START, "measuring")

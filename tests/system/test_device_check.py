@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from appliance.sim.controller_server import ControllerServer
-from tests.system.aravis_peers import FakeGvCamera, needs_gige
+from tests.system.aravis_peers import FakeGvCamera, needs_gige, specimen_camera
 from tests.system.machine_controller_peers import SimulatedController
 from tests.system.modbus_peers import free_tcp_port
 
@@ -43,15 +43,30 @@ def test_camera_check_reports_what_the_camera_delivers(tmp_path):
             "--json",
         )
         text = _cli("camera-check", "--camera", camera.url, "--frames", "5")
-    assert done.returncode == 0, done.stderr
+    assert done.returncode == 1, done.stderr
     report = json.loads(done.stdout)
+    assert report["fit"] is False
+    assert [p for p in report["problems"] if p.startswith("no sharp texture in view")]
     for key in ("frames", "width", "height", "pixel_format", "fps", "lost"):
         assert key in report
     assert (report["frames"], report["width"], report["height"]) == (20, 256, 128)
     assert report["pixel_format"] == "Mono8" and report["lost"] == 0
     assert report["timestamps_increasing"] and 25 < report["device_fps"] < 100
     assert report["statistics"]["frames_delivered"] >= 20
-    assert text.returncode == 0 and "frames             5 (0 lost" in text.stdout
+    assert text.returncode == 1 and "frames             5 (0 lost" in text.stdout
+    assert "verdict            NOT fit to measure" in text.stdout
+
+
+@needs_gige
+def test_camera_check_finds_a_camera_on_a_speckled_specimen_fit_to_measure(tmp_path):
+    with specimen_camera(tmp_path / "truth.jsonl", strain_rate_per_s=0.0) as camera:
+        done = _cli(
+            "camera-check", "--camera", camera.url, "--frames", "20", "--rate", "20", "--json"
+        )
+    assert done.returncode == 0, done.stdout + done.stderr
+    report = json.loads(done.stdout)
+    assert report["fit"] is True and report["problems"] == [] and report["lost"] == 0
+    assert report["sharpest_gradient"] > 3.8
 
 
 @needs_gige

@@ -31,7 +31,7 @@ from appliance.run.outputs import RunHooks
 from appliance.runner import run_test
 from appliance.sim.controller_server import ControllerServer
 from firmware_bridge.simulator import SimulatedMcu
-from tests.system.aravis_peers import needs_gige, specimen_camera
+from tests.system.aravis_peers import FakeGvCamera, needs_gige, specimen_camera
 from tests.system.firmware_peers import firmware_binaries
 from tests.system.machine_controller_peers import SimulatedController
 from tests.system.modbus_peers import free_tcp_port
@@ -132,6 +132,26 @@ def test_extensometer_run_measures_a_gige_specimen_against_its_truth(tmp_path):
     )
     assert replay.returncode == 0, replay.stderr
     assert json.loads(replay.stdout)["max_abs_diff_to_recorded"] == 0.0
+
+
+def test_a_camera_that_shows_no_speckle_is_refused_before_the_test_in_one_line(tmp_path):
+    """Aravis' fake camera sends a grey ramp: no mark can be tracked on it, so the test does
+    not start (it used to run, call every sample invalid and end as a break, exit 0)."""
+    config = tmp_path / "fake.toml"
+    with FakeGvCamera("127.0.0.6", "GV06") as camera:
+        config.write_text(
+            _config_text(camera.url, "", machine='url = ""\naccepts_commands = false')
+        )
+        done = subprocess.run(
+            [sys.executable, "-m", "appliance.cli", "run", "--config", str(config), "--out",
+             str(tmp_path / "out"), "--record", str(tmp_path / "out" / "test.mcap")],
+            capture_output=True,
+            text=True,
+            timeout=180,
+        )  # fmt: skip
+    assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+    assert done.stderr.startswith("extensometer: error: reference frame: mark 1 at (")
+    assert "cannot be tracked: no " in done.stderr and "Traceback" not in done.stderr
 
 
 def test_a_camera_that_goes_away_mid_test_is_waited_for_and_the_test_goes_on(tmp_path):
