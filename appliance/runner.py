@@ -34,7 +34,7 @@ from appliance.errors import InputError
 from appliance.measure.frame_measurer import StopCriteria, StrainSample, tracker_and_gauges
 from appliance.measure.gauges import Calibration, StrainGauges, marks_outside, place_marks
 from appliance.measure.image_quality import speckle_problem
-from appliance.measure.tracking import MarkTracker
+from appliance.measure.tracking import MarkTracker, warm_up_kernels
 from appliance.plan.exposure import ExposurePlan, exposure_for
 from appliance.plan.pacing import ExposurePacer, Replan
 from appliance.plan.trigger_plan import (
@@ -45,6 +45,7 @@ from appliance.plan.trigger_plan import (
 )
 from appliance.recording.writer import McapRecorder
 from appliance.rig import Rig, rig_for
+from appliance.run.drops import DropWarning
 from appliance.run.loop import DeviceEvent, LoopResult, MeasurementLoop
 from appliance.run.outputs import RunFacts, RunHooks, RunOutput
 from appliance.run.progress import ProgressLine
@@ -89,6 +90,7 @@ def run_test(
     """
     rig = rig_for(config, simulate=simulate)
     plan = exposure_for(config, rig.optics, rig.speed_mm_min)
+    warm_up_kernels()
     calibration = Calibration.from_optics(rig.optics.pixel_size_um, rig.optics.magnification)
     line = ProgressLine(progress) if progress is not None else None
     samples = _SampleLog()
@@ -117,11 +119,18 @@ def run_test(
     known_before = _run_facts(config, rig, plan, calibration, in_force.exposure_us, triggers)
     facts = {"test_id": test_id, "simulated": simulate, **known_before}
     reference = _Reference(config, rig, calibration, samples, outputs, facts)
+    drops = DropWarning(1.0 / plan.frame_period_s, _warning_listener(recorder, hooks))
     loop = MeasurementLoop(
         rig.camera,
         rig.machine,
         reference.place_marks,
-        sinks=[samples, *([writer] if writer else []), *outputs, *([line] if line else [])],
+        sinks=[
+            samples,
+            *([writer] if writer else []),
+            *outputs,
+            drops,
+            *([line] if line else []),
+        ],
         immediate_sinks=hooks.immediate_sinks,
         state=RunStateMachine(on_transition=_transition_listener(recorder, hooks)),
         block_when_full=rig.block_when_full,
@@ -422,6 +431,18 @@ def _transition_listener(
             hooks.on_transition(record)
 
     return transition
+
+
+def _warning_listener(recorder: McapRecorder | None, hooks: RunHooks) -> Callable[[str], None]:
+    """A warning about the test to the recording's log, then to the hooks' listener."""
+
+    def warn(text: str) -> None:
+        if recorder is not None:
+            recorder.log("WARNING", text)
+        if hooks.on_warning is not None:
+            hooks.on_warning(text)
+
+    return warn
 
 
 def _device_listeners(

@@ -36,13 +36,12 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
 
-import numpy as np
-
 from appliance.config import Config
 from appliance.errors import InputError
 from appliance.live.link import LiveLink
 from appliance.live.sd_notify import ServiceNotifier
 from appliance.live.viewer import RerunViewer
+from appliance.measure.tracking import warm_up_kernels
 from appliance.rig import check_devices
 from appliance.run.state import ExitStatus, RunState, Transition
 from appliance.runner import run_test
@@ -162,7 +161,7 @@ class Service:
                 ) from None
         self._check_watchdog()
         self.link.start()
-        _warm_up_measurement()
+        warm_up_kernels()
 
     def _check_watchdog(self) -> None:
         """Refuse a frame period the watchdog cannot wait through (pings come with frames)."""
@@ -237,7 +236,10 @@ class Service:
                 simulate=config.camera.url.startswith("sim://"),
                 record_path=record,
                 test_id=self._test_id,
-                hooks=self.link.hooks(),
+                hooks=dataclasses.replace(
+                    self.link.hooks(),
+                    on_warning=lambda text: self.log(f"{self._test_id}: warning: {text}"),
+                ),
             )
         except (InputError, HardwareError) as error:
             self.log(f"{self._test_id}: not started: {error}")
@@ -253,16 +255,3 @@ class Service:
             f"final strain {summary.final_strain}; recording {record}"
         )
         self.notifier.status(f"last test {ended}; {self._idle_status()}")
-
-
-def _warm_up_measurement() -> None:
-    """Compile (or load from the cache) the measurement kernels before the service is ready."""
-    from appliance.dic import synthetic
-    from appliance.measure.tracking import MarkTracker, TrackerSettings
-
-    pattern = synthetic.dense_speckle(96, 96, seed=1, radius=2.0)
-    reference = synthetic.render(pattern, 96, 96)
-    points = np.array([[48.0, 40.0], [48.0, 56.0]])
-    tracker = MarkTracker(reference, points, [(0,), (1,)], TrackerSettings(subset_px=21))
-    moved = synthetic.render(pattern, 96, 96, synthetic.AffineMapping.translation(0.0, 0.5))
-    tracker.track(moved, 0.1)

@@ -9,6 +9,7 @@ set configuration keys are applied as `appliance.config.Override`s, checked as t
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import sys
 from pathlib import Path
@@ -125,6 +126,11 @@ def run_one_test(args: argparse.Namespace) -> int:
     test_id = f"test-{datetime.datetime.now(datetime.UTC):%Y%m%dT%H%M%SZ}"
     progress = None if args.json or not sys.stderr.isatty() else sys.stderr
     link = LiveLink(config, viewer=viewer_of(config))
+    leave_progress_line = "\n" if progress is not None else ""
+
+    def warn(text: str) -> None:
+        print(f"{leave_progress_line}extensometer: warning: {text}", file=sys.stderr, flush=True)
+
     try:
         link.start()
         outcome = run_test(
@@ -133,7 +139,7 @@ def run_one_test(args: argparse.Namespace) -> int:
             out_dir=args.out,
             progress=progress,
             record_path=args.record,
-            hooks=link.hooks(),
+            hooks=dataclasses.replace(link.hooks(), on_warning=warn),
             test_id=test_id,
         )
     except HardwareError as error:

@@ -156,6 +156,7 @@ class StatusBit(enum.IntFlag):
     FAULT = 1 << 5
     CAMERA_LOST = 1 << 6
     NO_CONTROLLER_DATA = 1 << 7
+    FRAMES_DROPPED = 1 << 8
 
 
 STATUS_BIT_MEANINGS: tuple[tuple[StatusBit, str], ...] = (
@@ -182,6 +183,11 @@ STATUS_BIT_MEANINGS: tuple[tuple[StatusBit, str], ...] = (
         StatusBit.NO_CONTROLLER_DATA,
         "no controller data (the latest sample has no reading of the machine's controller: "
         "force and crosshead are NaN)",
+    ),
+    (
+        StatusBit.FRAMES_DROPPED,
+        "frames dropped (camera frames were dropped between the previous sample and the latest: "
+        "a gap in the strain series; `frames_dropped` counts them)",
     ),
 )
 
@@ -387,9 +393,19 @@ REGISTER_MAP: tuple[Register, ...] = (
     ),
     Register("exit_status", 30, 1, RegisterType.UINT16, Access.READ, "", _EXIT_STATUS_TEXT),
     Register(
-        "reserved",
+        "frames_dropped",
         31,
-        69,
+        2,
+        RegisterType.UINT32,
+        Access.READ,
+        "",
+        "Camera frames dropped in the current (or last) test: gaps in the camera's frame "
+        "counter and frames the appliance had no time for; each is a gap in the strain series",
+    ),
+    Register(
+        "reserved",
+        33,
+        67,
         RegisterType.RESERVED,
         Access.READ,
         "",

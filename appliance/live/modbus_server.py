@@ -214,6 +214,7 @@ class StrainRegisterServer:
         self._sample_bits = StatusBit(0)
         self._sample_valid = False
         self._camera_lost = False
+        self._frames_dropped = 0
         self._heartbeat = 0
         self._command_counter = 0
         self._entries = [modbus_map.register_at(address) for address in range(MAP_SIZE)]
@@ -326,6 +327,8 @@ class StrainRegisterServer:
         bits = StatusBit(0)
         if machine is None:
             bits |= StatusBit.NO_CONTROLLER_DATA
+        if sample.frames_dropped > self._frames_dropped:
+            bits |= StatusBit.FRAMES_DROPPED
         if lost:
             bits |= StatusBit.POINT_LOST
         if sample.reference_updates:
@@ -334,6 +337,8 @@ class StrainRegisterServer:
         with self._lock:
             for start, words in parts:
                 image[start : start + len(words)] = words
+            self._frames_dropped = sample.frames_dropped
+            self._put(BY_NAME["frames_dropped"], sample.frames_dropped)
             self._sample_valid = bool(sample.data_valid)
             self._sample_bits = bits
             self._write_state_registers()
@@ -344,6 +349,8 @@ class StrainRegisterServer:
             self._state = state
             if state is RunState.ARMED:
                 self._camera_lost = False
+                self._frames_dropped = 0
+                self._put(BY_NAME["frames_dropped"], 0)
             self._write_state_registers()
 
     def set_exit_status(self, status: ExitStatus | None) -> None:

@@ -56,6 +56,9 @@ class StrainSample:
         windows: copies of the pixels of the frame the tracker read, one window per mark:
             enough to measure the frame again to the same numbers.
         zeroed: the strain was zeroed just before this frame (its gauge lengths became L0).
+        frames_dropped: camera frames dropped since the test started, up to this sample (gaps
+            in the camera's frame counter and frames the loop had no room for): a rise from
+            one sample to the next is a gap in the strain series.
         image: the whole frame (shared, not a copy: read it, never write it).
         metadata: the frame's metadata (a simulator's ground truth, for instance).
     """
@@ -76,6 +79,7 @@ class StrainSample:
     latency_s: float
     windows: tuple[ImageWindow, ...] = ()
     zeroed: bool = False
+    frames_dropped: int = 0
     image: np.ndarray | None = None
     metadata: Mapping[str, Any] = field(default_factory=dict)
 
@@ -174,7 +178,11 @@ class FrameMeasurer:
         self._zero_pending = True
 
     def measure(
-        self, frame: Frame, machine: MachineState | None, delivered_s: float | None = None
+        self,
+        frame: Frame,
+        machine: MachineState | None,
+        delivered_s: float | None = None,
+        frames_dropped: int = 0,
     ) -> StrainSample:
         """Measure the next frame; `machine` is the controller's state read with it.
 
@@ -182,6 +190,7 @@ class FrameMeasurer:
             frame: the frame (its image is read where the marks are).
             machine: the controller's state, or None.
             delivered_s: wall time the frame was delivered (for the latency); None = now.
+            frames_dropped: frames dropped in the test so far (the sample carries it).
         """
         delivered = self._wall() if delivered_s is None else delivered_s
         time_s = (frame.timestamp_ns - self.reference_time_ns) * 1e-9
@@ -220,6 +229,7 @@ class FrameMeasurer:
             latency_s=self._wall() - delivered,
             windows=cut_windows(np.asarray(frame.image), tracked.read_regions),
             zeroed=zeroed,
+            frames_dropped=frames_dropped,
             image=frame.image,
             metadata=frame.metadata,
         )

@@ -514,3 +514,18 @@ class MarkTracker:
         mark.first_reference = False
         mark.gradient = np.zeros(4)
         mark.set_reference(image, positions)
+
+
+def warm_up_kernels() -> None:
+    """Compile (or load from numba's cache) the kernels a tracker runs, on a small synthetic
+    image: a few hundred ms the first time in a process, nothing after. Done before a camera
+    is armed, it keeps that time out of a test, whose camera would otherwise stream into its
+    buffers while the first frames wait for the kernels."""
+    from appliance.dic import synthetic
+
+    pattern = synthetic.dense_speckle(96, 96, seed=1, radius=2.0)
+    reference = synthetic.render(pattern, 96, 96)
+    points = np.array([[48.0, 40.0], [48.0, 56.0]])
+    tracker = MarkTracker(reference, points, [(0,), (1,)], TrackerSettings(subset_px=21))
+    moved = synthetic.render(pattern, 96, 96, synthetic.AffineMapping.translation(0.0, 0.5))
+    tracker.track(moved, 0.1)

@@ -152,6 +152,7 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
             "data_valid": {"type": "boolean"},
             "points_lost": _INTEGER,
             "reference_updates": _INTEGER,
+            "frames_dropped": _INTEGER,
             "latency_ms": _NUMBER,
         },
     },
@@ -404,6 +405,7 @@ def strain_record(sample: StrainSample) -> dict[str, Any]:
         "data_valid": sample.data_valid,
         "points_lost": sample.points_lost,
         "reference_updates": sample.reference_updates,
+        "frames_dropped": sample.frames_dropped,
         "latency_ms": sample.latency_s * 1e3,
     }
 

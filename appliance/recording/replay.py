@@ -242,7 +242,9 @@ def _replay(
         if recorded.points.get("zeroed"):
             setup.measurer.zero()
         started = time.perf_counter()
-        sample = setup.measurer.measure(frame, machine, started)
+        sample = setup.measurer.measure(
+            frame, machine, started, int(recorded.strain.get("frames_dropped", 0))
+        )
         tracking_time += time.perf_counter() - started
         latencies.append(sample.latency_s)
         if uncovered([w.region for w in sample.windows], windows):

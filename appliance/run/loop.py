@@ -471,7 +471,7 @@ class MeasurementLoop:
                 if self._zero_requested.is_set():
                     self._zero_requested.clear()
                     measurer.zero()
-                sample = measurer.measure(frame, machine, delivered)
+                sample = measurer.measure(frame, machine, delivered, self._result.frames_dropped)
                 for sink in self.immediate_sinks:
                     sink(sample)
                 self._result.tracking_time_s += self._wall() - started

@@ -97,6 +97,8 @@ class RunHooks:
             another thread).
         device_listeners: called with every `DeviceEvent` (a camera or the machine lost or
             back), on the acquisition thread.
+        on_warning: called with a warning about the running test, one line (frames dropped:
+            `appliance.run.drops`), on the publishing thread; the recording logs it as well.
     """
 
     outputs: Sequence[RunOutput] = ()
@@ -104,3 +106,4 @@ class RunHooks:
     on_transition: Callable[[Transition], None] | None = None
     on_loop: Callable[[MeasurementLoop], None] | None = None
     device_listeners: Sequence[Callable[[DeviceEvent], None]] = ()
+    on_warning: Callable[[str], None] | None = None

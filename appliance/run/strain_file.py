@@ -2,7 +2,8 @@
 
 Columns (units in the names): sample index, camera frame id, device time, exposure, the
 strains, elongation and current gauge length, the data-valid flag, points lost in the frame,
-reference updates, the controller's crosshead position and force, and the processing latency;
+reference updates, the frames dropped so far in the test (a rise is a gap in the series), the
+controller's crosshead position and force, and the processing latency;
 then any extra columns the caller adds (a simulation's ground truth, for instance). Every row
 is flushed as it is written, so a run that ends abruptly keeps every sample measured before.
 """
@@ -32,6 +33,7 @@ COLUMNS: tuple[str, ...] = (
     "data_valid",
     "points_lost",
     "reference_updates",
+    "frames_dropped",
     "crosshead_mm",
     "force_n",
     "latency_ms",
@@ -56,6 +58,7 @@ def sample_row(sample: StrainSample) -> dict[str, Any]:
         "gauge_length_mm": reading.gauge_length_mm,
         "data_valid": int(sample.data_valid),
         "points_lost": sample.points_lost,
+        "frames_dropped": sample.frames_dropped,
         "reference_updates": sample.reference_updates,
         "crosshead_mm": machine.crosshead_mm if machine is not None else math.nan,
         "force_n": machine.force_n if machine is not None else math.nan,

@@ -155,6 +155,7 @@ def make_sample(
     reference_updates: int = 0,
     machine: MachineState | None = None,
     latency_s: float = 0.00125,
+    frames_dropped: int = 0,
 ) -> StrainSample:
     """A sample with known numbers, built directly (no tracking)."""
     count = len(status)
@@ -182,6 +183,7 @@ def make_sample(
         reference_updates=reference_updates,
         machine=machine,
         latency_s=latency_s,
+        frames_dropped=frames_dropped,
     )
 
 

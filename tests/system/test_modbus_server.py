@@ -510,3 +510,19 @@ def test_latency_benchmark_runs_and_writes_its_report(tmp_path, capsys):
         }
         assert run["max_abs_strain_error"] < 1e-3
     assert figures["with_polling_client"]["client"]["frames_seen"] > 0
+
+
+def test_the_registers_count_drops_and_flag_the_sample_after_a_gap(commands):
+    server = StrainRegisterServer(ModbusConfig(), commands)
+    status, counter = BY_NAME["status"], BY_NAME["frames_dropped"]
+    server.set_run_state(RunState.ARMED)
+    server.set_run_state(RunState.RUNNING)
+    for dropped, flagged in ((0, False), (3, True), (3, False), (4, True)):
+        server.publish(make_sample(frames_dropped=dropped), None)
+        bits = server.read_registers(status.address, 1)[0]
+        assert bool(bits & StatusBit.FRAMES_DROPPED) is flagged, dropped
+        words = server.read_registers(counter.address, counter.count)
+        assert modbus_map.decode(counter, words) == dropped
+    server.set_run_state(RunState.ARMED)
+    assert modbus_map.decode(counter, server.read_registers(counter.address, counter.count)) == 0
+    server.close()

@@ -66,8 +66,10 @@ def test_fixed_block_and_command_block_are_at_the_documented_addresses():
         assert (register.address, register.count, register.data_type) == (address, count, kind)
     exit_status = BY_NAME["exit_status"]
     assert (exit_status.address, exit_status.count, exit_status.access) == (30, 1, Access.READ)
+    dropped = BY_NAME["frames_dropped"]
+    assert (dropped.address, dropped.count, dropped.data_type) == (31, 2, RegisterType.UINT32)
     reserved = BY_NAME["reserved"]
-    assert (reserved.address, reserved.end, reserved.access) == (31, 100, Access.READ)
+    assert (reserved.address, reserved.end, reserved.access) == (33, 100, Access.READ)
     writable = {r.name for r in REGISTER_MAP if r.writable}
     assert writable == {"command", "gauge_length_setpoint_mm"}
     assert BY_NAME["command"].choices == (1, 2, 3)
@@ -83,7 +85,7 @@ def test_codes_are_distinct_and_every_run_state_has_one():
     assert sorted(RUN_STATE_CODES.values()) == list(range(6))
     assert set(EXIT_STATUS_CODES) == set(ExitStatus) - {ExitStatus.DAMAGED}
     assert sorted(EXIT_STATUS_CODES.values()) == list(range(1, 6))
-    assert [int(bit) for bit in StatusBit] == [1, 2, 4, 8, 16, 32, 64, 128]
+    assert [int(bit) for bit in StatusBit] == [1, 2, 4, 8, 16, 32, 64, 128, 256]
 
 
 @pytest.mark.parametrize("word_order", ["big", "little"])

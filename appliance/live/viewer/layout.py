@@ -18,8 +18,8 @@ Entity tree and timelines
     status/points_lost      Scalars: points not measured in the frame
     status/state            TextDocument: run state, strain, data valid, points lost, viewer
                             counts (at most once per second of device time, and on changes)
-    status/log              TextLog: start, data valid / not valid, points lost / found,
-                            reference updates (debug), the exit status at the end
+    status/log              TextLog: start, data valid / not valid, points lost / found, frames
+                            dropped, reference updates (debug), the exit status at the end
     status/result           AnyValues: exit status, reason, frame and viewer counts (static)
     facts/calibration       AnyValues: scale, gauge length, image size, points (static)
     facts/summary           TextDocument: the test's facts (static)

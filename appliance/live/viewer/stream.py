@@ -117,6 +117,7 @@ class OneTestStream:
         self._last_sample: StrainSample | None = None
         self._last_valid = True
         self._last_lost = 0
+        self._last_dropped = 0
         self._next_status_ns = 0
         self._reference_updates = 0
         height, width = facts.reference.image.shape[:2]
@@ -346,6 +347,16 @@ class OneTestStream:
                 else (f"{where}: all {total} points tracked again", rr.TextLogLevel.INFO)
             )
             self._last_lost = lost_points
+        if sample.frames_dropped > self._last_dropped:
+            dropped = sample.frames_dropped - self._last_dropped
+            events.append(
+                (
+                    f"{where}: {dropped} camera frames dropped before it "
+                    f"({sample.frames_dropped} in all)",
+                    rr.TextLogLevel.WARN,
+                )
+            )
+            self._last_dropped = sample.frames_dropped
         if sample.reference_updates:
             self._reference_updates += sample.reference_updates
             events.append(
@@ -481,6 +492,7 @@ class OneTestStream:
             rows += [
                 ("data valid", "yes" if sample.data_valid else "**no**"),
                 ("points lost", f"{lost} of {len(sample.status)}"),
+                ("frames dropped", str(sample.frames_dropped)),
             ]
         rows += [
             ("reference updates", str(self._reference_updates)),
