@@ -228,6 +228,21 @@ class RecordConfig:
 
 
 @dataclass(frozen=True)
+class StorageConfig:
+    """[storage]: room on disk for a test's files (`appliance.run.disk_space`).
+
+    A test does not start while a directory it writes to (the output directory of `run`, the
+    recording's, the service's state directory) has less than `min_free_mb` free. While it
+    runs, `reserve_mb` is held beside its strain file and released when the disk is full, so
+    that the test ends as a fault with every sample measured in the strain file and its
+    summary written; 0 = no reserve.
+    """
+
+    min_free_mb: float = field(default=1000.0, metadata=_range(0.0, 1e9))
+    reserve_mb: float = field(default=4.0, metadata=_range(0.0, 1e6))
+
+
+@dataclass(frozen=True)
 class ModbusConfig:
     """[modbus]: the strain server for the machine controller (`appliance.live.modbus_server`).
 
@@ -273,13 +288,16 @@ class RerunConfig:
 class ServiceConfig:
     """[service]: `extensometer serve`, the appliance as a long-running service.
 
-    Recordings go to `state_directory` (systemd's $STATE_DIRECTORY wins when set). `start`:
-    `command` waits for the controller's start command (Modbus), `auto` also starts one test
-    as soon as the service is up.
+    Every test's files (recording, strain file, summary) go to `state_directory` (systemd's
+    $STATE_DIRECTORY wins when set). `start`: `command` waits for the controller's start
+    command (Modbus), `auto` also starts one test as soon as the service is up. Before each
+    test the oldest tests' files in the state directory are deleted while all of them together
+    exceed `max_state_mb` (`appliance.recording.retention`); 0 = keep everything.
     """
 
     state_directory: str = "/var/lib/extensometer"
     start: str = field(default="command", metadata={"choices": ("command", "auto")})
+    max_state_mb: float = field(default=20000.0, metadata=_range(0.0, 1e9))
 
 
 @dataclass(frozen=True)
@@ -295,6 +313,7 @@ class Config:
     run: RunConfig = field(default_factory=RunConfig)
     sim: SimConfig = field(default_factory=SimConfig)
     record: RecordConfig = field(default_factory=RecordConfig)
+    storage: StorageConfig = field(default_factory=StorageConfig)
     modbus: ModbusConfig = field(default_factory=ModbusConfig)
     rerun: RerunConfig = field(default_factory=RerunConfig)
     service: ServiceConfig = field(default_factory=ServiceConfig)
@@ -431,6 +450,7 @@ _RELATIONS = (
     ("tracking", "search_radius_px", "reacquire_radius_px"),
     ("tracking", "min_zncc", "update_zncc"),
     ("camera", "min_exposure_us", "max_exposure_us"),
+    ("storage", "reserve_mb", "min_free_mb"),
 )
 """(table, key, other key): the value of key may not exceed that of the other key."""
 

@@ -13,16 +13,24 @@
 3. marks: placed on the reference frame, centred on the specimen, at the configured gauge
    length; each axial mark a short line of points;
 4. the loop (`appliance.run.loop`) until the strain limit, the break, or a stop;
-5. outputs: `strain.csv` (every sample, with the truth when simulated) and `summary.json`
-   in the output directory, the MCAP recording (`appliance.recording.writer`) and the
-   hooks' outputs (a viewer), and the summary returned.
+5. outputs (`OutputFiles`): the strain file (every sample, with the truth when simulated),
+   the summary, the MCAP recording (`appliance.recording.writer`) and the hooks' outputs (a
+   viewer), and the summary returned.
+
+Before the test its directories must have `[storage] min_free_mb` free, and a reserve is held
+beside the strain file (`appliance.run.disk_space`). A full disk during the test (the recording
+or the strain file cannot be written) ends it as a fault: the reserve is released, so the
+strain file still gets every sample measured and the summary is written.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import errno
+import os
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
@@ -45,12 +53,13 @@ from appliance.plan.trigger_plan import (
 )
 from appliance.recording.writer import McapRecorder
 from appliance.rig import Rig, rig_for
+from appliance.run.disk_space import DiskReserve, check_free_space
 from appliance.run.drops import DropWarning
 from appliance.run.loop import DeviceEvent, LoopResult, MeasurementLoop
 from appliance.run.outputs import RunFacts, RunHooks, RunOutput
 from appliance.run.progress import ProgressLine
 from appliance.run.state import ExitStatus, RunStateMachine, Transition
-from appliance.run.strain_file import StrainCsvWriter
+from appliance.run.strain_file import StrainCsvWriter, StrainFileError
 from appliance.run.summary import RunOutcome, RunSummary, SampleRecord
 from hal.camera.base import Frame, PixelFormat
 
@@ -61,13 +70,42 @@ TRUTH_COLUMNS = ("truth_strain", "truth_elongation_mm", "strain_error")
 NO_HOOKS = RunHooks()
 
 
+@dataclass(frozen=True)
+class OutputFiles:
+    """The files one test writes; None = not written.
+
+    Attributes:
+        strain: the strain file (`appliance.run.strain_file`); its directory is created.
+        summary: the summary as JSON, written at the end; its directory is created.
+        recording: the MCAP recording (must not exist; its directory must).
+    """
+
+    strain: Path | None = None
+    summary: Path | None = None
+    recording: Path | None = None
+
+    @classmethod
+    def in_directory(cls, out_dir: Path | None, recording: Path | None = None) -> OutputFiles:
+        """`strain.csv` and `summary.json` in `out_dir` (None: neither), and the recording."""
+        if out_dir is None:
+            return cls(recording=recording)
+        return cls(out_dir / "strain.csv", out_dir / "summary.json", recording)
+
+    def directories(self) -> list[Path]:
+        """The directories written to, each once."""
+        paths = (self.strain, self.summary, self.recording)
+        return list(dict.fromkeys(p.parent for p in paths if p is not None))
+
+
+NO_FILES = OutputFiles()
+
+
 def run_test(
     config: Config,
     *,
     simulate: bool,
-    out_dir: Path | None = None,
+    files: OutputFiles = NO_FILES,
     progress: TextIO | None = None,
-    record_path: Path | None = None,
     hooks: RunHooks = NO_HOOKS,
     test_id: str = "",
 ) -> RunOutcome:
@@ -76,16 +114,15 @@ def run_test(
     Args:
         config: the validated configuration.
         simulate: use the simulated world (ground truth in the outputs).
-        out_dir: where to write strain.csv and summary.json (created); None = nowhere.
+        files: the strain file, summary and recording to write; none by default.
         progress: a terminal stream for the progress line; None = quiet.
-        record_path: the MCAP recording to write (must not exist); None = no recording.
         hooks: what follows and drives the test from outside (Modbus registers, a viewer,
             the watchdog, the service's run-state listener); none by default.
         test_id: names the test in the recording and the viewer.
 
     Raises:
-        InputError: a configuration that cannot run (named key), or a recording file or
-            output directory that cannot be created.
+        InputError: a configuration that cannot run (named key), a recording file or output
+            directory that cannot be created, or a disk without the room a test needs.
         HardwareError: a device that cannot be opened or configured.
     """
     rig = rig_for(config, simulate=simulate)
@@ -94,25 +131,34 @@ def run_test(
     calibration = Calibration.from_optics(rig.optics.pixel_size_um, rig.optics.magnification)
     line = ProgressLine(progress) if progress is not None else None
     samples = _SampleLog()
-    if out_dir is not None:
-        out_dir.mkdir(parents=True, exist_ok=True)
+    reserve = _prepare_directories(files, config)
     recorder = None
-    if record_path is not None:
-        recorder = McapRecorder(
-            record_path,
-            config.record,
-            truth=samples.latest_truth if simulate else None,
-            trigger_mode=config.trigger.source,
-        )
+    if files.recording is not None:
+        try:
+            recorder = McapRecorder(
+                files.recording,
+                config.record,
+                truth=samples.latest_truth if simulate else None,
+                trigger_mode=config.trigger.source,
+            )
+        except BaseException:
+            _release(reserve)
+            raise
     writer = None
+    faults = _LateFaults()
     try:
         in_force, triggers = rig.open(config, plan)
         pacer = _exposure_pacer(config, rig, in_force.exposure_us, recorder, line)
-        if out_dir is not None:
-            writer = _strain_file(out_dir / "strain.csv", samples if simulate else None)
+        if files.strain is not None:
+            writer = _strain_file(
+                files.strain,
+                samples if simulate else None,
+                faults.disk_full(reserve, files.strain, recorder),
+            )
     except BaseException:
         if recorder is not None:
             recorder.close()
+        _release(reserve)
         rig.close()
         raise
     outputs: list[RunOutput] = ([recorder] if recorder is not None else []) + list(hooks.outputs)
@@ -139,6 +185,7 @@ def run_test(
         device_listeners=_device_listeners(recorder, hooks, line),
         machine_listeners=[pacer.follow] if pacer is not None else [],
     )
+    faults.loop = loop
     if hooks.on_loop is not None:
         hooks.on_loop(loop)
     try:
@@ -158,7 +205,10 @@ def run_test(
             line.close()
         rig.close()
     _end_outputs(outputs, result)
+    _release(reserve)
     extra = {**known_before, **_run_counts(result, samples, reference, loop, rig, pacer)}
+    if writer is not None:
+        extra["strain_file_rows"] = writer.rows
     for output in outputs:
         extra.update(output.stats())
     outcome = RunOutcome(
@@ -166,10 +216,71 @@ def run_test(
         extra,
         writer.path if writer is not None else None,
     )
-    if out_dir is not None:
-        outcome.summary_path = out_dir / "summary.json"
-        outcome.summary_path.write_text(outcome.to_json() + "\n")
+    if files.summary is not None:
+        _write_summary(outcome, files.summary)
     return outcome
+
+
+def _prepare_directories(files: OutputFiles, config: Config) -> DiskReserve | None:
+    """Create the output directories, check their free space and hold the reserve beside the
+    strain file (None when there is no strain file or summary)."""
+    for path in (files.strain, files.summary):
+        if path is not None:
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise InputError(f"{path.parent}: cannot create ({exc.strerror})") from None
+    check_free_space(files.directories(), config.storage.min_free_mb)
+    kept = files.strain or files.summary
+    return DiskReserve(kept.parent, config.storage.reserve_mb) if kept is not None else None
+
+
+def _release(reserve: DiskReserve | None) -> None:
+    if reserve is not None:
+        reserve.release()
+
+
+class _LateFaults:
+    """Faults noticed outside the loop's threads after it was built: a full disk."""
+
+    def __init__(self) -> None:
+        self.loop: MeasurementLoop | None = None
+
+    def disk_full(
+        self, reserve: DiskReserve | None, path: Path, recorder: McapRecorder | None
+    ) -> Callable[[], bool]:
+        """The strain file's `on_no_space`: end the test as a fault, stop the recording (so it
+        takes none of the room given back) and release the reserve; True when the reserve
+        gave room back."""
+
+        def no_space() -> bool:
+            error = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+            if self.loop is not None:
+                self.loop.request_fault("strain file", error)
+            if recorder is not None:
+                recorder.abandon(f"{path}: {error.strerror}")
+            return reserve is not None and reserve.release()
+
+        return no_space
+
+
+def _write_summary(outcome: RunOutcome, path: Path) -> None:
+    """Write the summary; a summary that cannot be written turns the test into a fault, said
+    in the summary returned (which the caller prints or logs)."""
+    try:
+        path.write_text(outcome.to_json() + "\n")
+    except OSError as exc:
+        summary = outcome.summary
+        outcome.summary = dataclasses.replace(
+            summary,
+            exit_status=ExitStatus.FAULT,
+            reason=(
+                f"{path}: cannot write the summary ({exc.strerror}); "
+                f"the test ended {summary.exit_status}: {summary.reason}"
+            ),
+        )
+        return
+    outcome.summary_path = path
 
 
 class _SampleLog:
@@ -369,11 +480,18 @@ def _end_outputs(outputs: list[RunOutput], result: LoopResult) -> None:
         result.reason = f"outputs: {errors[0]}"
 
 
-def _strain_file(path: Path, samples: _SampleLog | None) -> StrainCsvWriter:
+def _strain_file(
+    path: Path, samples: _SampleLog | None, on_no_space: Callable[[], bool]
+) -> StrainCsvWriter:
     """The strain file, with the truth columns of a simulated test."""
-    if samples is None:
-        return StrainCsvWriter(path)
-    return StrainCsvWriter(path, TRUTH_COLUMNS, samples.truth_columns)
+    try:
+        if samples is None:
+            return StrainCsvWriter(path, on_no_space=on_no_space)
+        return StrainCsvWriter(path, TRUTH_COLUMNS, samples.truth_columns, on_no_space=on_no_space)
+    except StrainFileError as exc:
+        raise InputError(str(exc)) from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot create the strain file ({exc.strerror})") from None
 
 
 def _exposure_pacer(

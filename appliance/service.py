@@ -8,7 +8,10 @@ with `[service] start = "auto"`, the first one at once:
 
 * every test is recorded to a new MCAP file (`--record FILE.mcap` names the first, later ones
   get `-2`, `-3`, ... before the suffix; by default a timestamped file in the state
-  directory, `$STATE_DIRECTORY` under systemd), with its summary beside it as JSON;
+  directory, `$STATE_DIRECTORY` under systemd), with its strain file (`.strain.csv`) and its
+  summary (`.summary.json`) beside it; before each test in the state directory the oldest
+  tests are deleted while the directory holds more than `[service] max_state_mb`
+  (`appliance.recording.retention`);
 * during a test the registers are written on the measurement thread with every frame, and
   the watchdog is pinged from there too (`WATCHDOG=1`), so a measurement that stalls stops
   the pings and systemd restarts the service; between tests the service's own wait loop pings;
@@ -21,7 +24,9 @@ with `[service] start = "auto"`, the first one at once:
 With the simulated devices (`sim://` URLs) every test gets a new simulated specimen. With
 real devices each test opens the camera and the controller and closes them at its end; a
 device that cannot be opened is logged and reported (`STATUS=`, the `fault` bit), and the
-service waits for the next start command instead of exiting.
+service waits for the next start command instead of exiting. So does a test that cannot start
+or that fails in any other way (a disk without room: `appliance.run.disk_space`): the service
+outlives its tests.
 """
 
 from __future__ import annotations
@@ -42,9 +47,10 @@ from appliance.live.link import LiveLink
 from appliance.live.sd_notify import ServiceNotifier
 from appliance.live.viewer import RerunViewer
 from appliance.measure.tracking import warm_up_kernels
+from appliance.recording.retention import enforce_retention
 from appliance.rig import check_devices
 from appliance.run.state import ExitStatus, RunState, Transition
-from appliance.runner import run_test
+from appliance.runner import OutputFiles, run_test
 from hal.errors import HardwareError
 
 IDLE_TICK_S = 0.1
@@ -221,6 +227,11 @@ class Service:
             record = numbered(self.record_path, self.tests_run)
         else:
             record = state_directory(self.config) / f"{self._test_id}.mcap"
+        files = OutputFiles(
+            strain=record.with_suffix(".strain.csv"),
+            summary=record.with_suffix(".summary.json"),
+            recording=record,
+        )
         config = self.config
         with self._lock:
             gauge_length = self._gauge_length_mm
@@ -231,10 +242,12 @@ class Service:
         self.log(f"{self._test_id}: starting, recording to {record}")
         self.notifier.status(f"starting test {self._test_id}")
         try:
+            if self.record_path is None:
+                enforce_retention(record.parent, config.service.max_state_mb, self.log)
             outcome = run_test(
                 config,
                 simulate=config.camera.url.startswith("sim://"),
-                record_path=record,
+                files=files,
                 test_id=self._test_id,
                 hooks=dataclasses.replace(
                     self.link.hooks(),
@@ -242,16 +255,26 @@ class Service:
                 ),
             )
         except (InputError, HardwareError) as error:
-            self.log(f"{self._test_id}: not started: {error}")
-            self.notifier.status(f"last test not started: {error}; {self._idle_status()}")
-            self.link.modbus.set_exit_status(ExitStatus.FAULT)
-            self.link.modbus.set_run_state(RunState.FAULT)
+            self._not_started(str(error))
+            return
+        except OSError as error:
+            self._not_started(f"{error.filename or ''}: {error.strerror}")
+            return
+        except Exception as error:  # noqa: BLE001 - the service outlives any one test
+            self._not_started(f"{type(error).__name__}: {error}", ended="failed")
             return
         summary = outcome.summary
-        record.with_suffix(".summary.json").write_text(outcome.to_json() + "\n")
         ended = f"{summary.exit_status}: {summary.reason}"
         self.log(
             f"{self._test_id}: {ended}; {summary.frames_processed} frames, "
             f"final strain {summary.final_strain}; recording {record}"
         )
         self.notifier.status(f"last test {ended}; {self._idle_status()}")
+
+    def _not_started(self, why: str, ended: str = "not started") -> None:
+        """A test that could not run (or failed without a result): logged, said in STATUS=
+        and on the Modbus server as a fault."""
+        self.log(f"{self._test_id}: {ended}: {why}")
+        self.notifier.status(f"last test {ended}: {why}; {self._idle_status()}")
+        self.link.modbus.set_exit_status(ExitStatus.FAULT)
+        self.link.modbus.set_run_state(RunState.FAULT)

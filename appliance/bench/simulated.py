@@ -28,7 +28,7 @@ import numpy as np
 
 from appliance.bench.results import write_report
 from appliance.config import Config
-from appliance.runner import run_test
+from appliance.runner import OutputFiles, run_test
 
 CLASS_05_RELATIVE = 0.005
 CLASS_05_ABSOLUTE_UM = 1.5
@@ -163,7 +163,9 @@ def run_simulated_benchmark(out: Path, *, quick: bool = False) -> int:
     results = []
     for name, config, target in cases(quick):
         started = time.perf_counter()
-        outcome = run_test(config, simulate=True, out_dir=out / "sim" / _slug(name))
+        outcome = run_test(
+            config, simulate=True, files=OutputFiles.in_directory(out / "sim" / _slug(name))
+        )
         summary = json.loads(outcome.to_json())
         summary["wall_s"] = time.perf_counter() - started
         verdict = _verdict(name, summary)

@@ -120,7 +120,7 @@ def run_one_test(args: argparse.Namespace) -> int:
     """Run `run`; exit status 0 when the test ended by its criterion, a break or a stop, else
     1. The test is named `test-<UTC start time>` in its recording and the viewer."""
     from appliance.live.link import LiveLink
-    from appliance.runner import run_test
+    from appliance.runner import OutputFiles, run_test
 
     config = run_configuration(args)
     test_id = f"test-{datetime.datetime.now(datetime.UTC):%Y%m%dT%H%M%SZ}"
@@ -136,9 +136,8 @@ def run_one_test(args: argparse.Namespace) -> int:
         outcome = run_test(
             config,
             simulate=args.sim,
-            out_dir=args.out,
+            files=OutputFiles.in_directory(args.out, args.record),
             progress=progress,
-            record_path=args.record,
             hooks=dataclasses.replace(link.hooks(), on_warning=warn),
             test_id=test_id,
         )

@@ -20,7 +20,9 @@ Guarantees:
 * A recording is never overwritten: the file must not exist. (The file is synced only when
   it is a regular file; a pipe or a socket is flushed.)
 * A write error (disk full) is raised at the next sample as `RecordingError`, which ends the
-  test as a fault; what was written before stays readable.
+  test as a fault; what was written before stays readable. When the disk fills under another
+  file of the test first, `abandon` stops the recording at once, so that the room left goes
+  to the strain file and the summary.
 """
 
 from __future__ import annotations
@@ -137,6 +139,7 @@ class McapRecorder:
         self._backlog_limit = int(config.backlog_mb * 1e6)
         self._backlog_changed = threading.Condition()
         self._error: BaseException | None = None
+        self._abandoned = ""
         self._facts: RunFacts | None = None
         self._last_time_ns: int | None = None
         self._full_interval_ns = (
@@ -220,7 +223,8 @@ class McapRecorder:
         self._submit(("flush",))
 
     def log(self, level: str, text: str, time_ns: int | None = None) -> None:
-        """An entry in the recording's `/log` (run states, commands).
+        """An entry in the recording's `/log` (run states, commands); nothing once the
+        recording has failed (listeners of the run never fail with it).
 
         Its time defaults to the acquisition time of the latest frame recorded, so entries
         sit on the frames' timeline (also when a simulation runs faster than real time);
@@ -228,7 +232,10 @@ class McapRecorder:
         """
         when = time_ns if time_ns is not None else self._last_time_ns
         when = self._wall_ns() if when is None else when
-        self._message(TOPIC_LOG, when, 0, log_message(when, level, text))
+        try:
+            self._message(TOPIC_LOG, when, 0, log_message(when, level, text))
+        except RecordingError:
+            return
 
     def log_transition(self, transition: Transition) -> None:
         """A change of the run state, in `/log`."""
@@ -308,6 +315,14 @@ class McapRecorder:
         self._thread.join()
         if self._error is not None:
             raise RecordingError(f"{self.path}: recording failed: {self._error}")
+
+    def abandon(self, why: str, timeout_s: float = 10.0) -> None:
+        """Stop writing at once: records not yet on disk are dropped, the file keeps what was
+        written (readable up to there), and `end` then only reports the failure. Waits up to
+        `timeout_s` for the writer thread to stop (a disk that does not answer)."""
+        self._abandoned = why
+        self._queue.put((("finish",), 0))
+        self._thread.join(timeout_s)
 
     def close(self) -> None:
         """Stop the writer without a run result (a run that never began); idempotent."""
@@ -424,6 +439,8 @@ class McapRecorder:
                     op, size = self._queue.get(timeout=timeout)
                 except queue.Empty:
                     op, size = ("flush",), 0
+                if self._abandoned:
+                    raise RecordingError(f"abandoned: {self._abandoned}")
                 if op[0] == "finish":
                     self._writer.finish()
                     self._file.flush()

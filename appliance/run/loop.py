@@ -11,8 +11,10 @@
   Modbus registers and the watchdog, which must see the strain of this frame before the next
   one is measured; they must be fast and must not block) and hands the `StrainSample` on.
 * The publishing thread calls the sinks (strain file, recording, viewer, progress display).
-  Its queue never drops: a sample is published or the loop fails; a sink that cannot keep up
-  slows the loop until the frames queue drops frames, which are counted.
+  Its queue never drops: every sample measured is published; a sink that cannot keep up
+  slows the loop until the frames queue drops frames, which are counted. A sink that fails
+  (a recording on a full disk) ends the test as a fault and gets no further samples; the
+  other sinks still get every sample measured before the test ended.
 
 Timestamps come from the device (`Frame.timestamp_ns`). Latency is wall time from the moment
 the camera delivers a frame to the moment its strain sample is complete, so it measures this
@@ -200,11 +202,18 @@ class MeasurementLoop:
         self._zero_requested = threading.Event()
         self._result = LoopResult()
         self._errors: list[tuple[str, BaseException]] = []
+        self._publishing_failed = False
         self._lock = threading.Lock()
 
     def request_stop(self, reason: str = "operator stop") -> None:
         """Stop the run before its criterion; it ends STOPPED with `reason` (thread-safe)."""
         self._finish(ExitStatus.STOPPED, reason)
+
+    def request_fault(self, where: str, error: BaseException) -> None:
+        """End the run as a FAULT because of `error` outside the loop's threads (an output
+        that can no longer keep up with the test, a disk that is full); thread-safe. The
+        reason is "`where`: `ErrorType`: `error`"; the first fault wins."""
+        self._fail(where, error)
 
     def request_zero(self) -> None:
         """Zero the strain at the next measured frame (thread-safe); see
@@ -333,9 +342,17 @@ class MeasurementLoop:
         try:
             body(*args)
         except BaseException as exc:  # noqa: BLE001 - every thread failure becomes a FAULT
-            self._errors.append((name, exc))
+            if name == "publishing":
+                self._publishing_failed = True
+            self._fail(name, exc)
+
+    def _fail(self, where: str, error: BaseException) -> None:
+        """Record a fault and end the run: no frame is acquired after it (the frames already
+        acquired are still measured and published)."""
+        with self._lock:
+            self._errors.append((where, error))
             self._stop.set()
-            self._put(self._frames, _END, force=True)
+        self._put(self._frames, _END, force=True)
 
     def _put(self, q: queue.Queue, item: object, *, force: bool = False) -> bool:
         while True:
@@ -494,13 +511,18 @@ class MeasurementLoop:
                 self._samples.put(sample, timeout=0.05)
                 return
             except queue.Full:
-                if any(name == "publishing" for name, _ in self._errors):
+                if self._publishing_failed:
                     return
 
     def _publish(self) -> None:
+        sinks = list(self.sinks)
         while True:
             sample = self._samples.get()
             if sample is _END:
                 return
-            for sink in self.sinks:
-                sink(sample)
+            for sink in tuple(sinks):
+                try:
+                    sink(sample)
+                except Exception as exc:  # noqa: BLE001 - one failing sink must not starve the others
+                    sinks.remove(sink)
+                    self._fail("output", exc)

@@ -5,13 +5,17 @@ strains, elongation and current gauge length, the data-valid flag, points lost i
 reference updates, the frames dropped so far in the test (a rise is a gap in the series), the
 controller's crosshead position and force, and the processing latency;
 then any extra columns the caller adds (a simulation's ground truth, for instance). Every row
-is flushed as it is written, so a run that ends abruptly keeps every sample measured before.
+is written to the file as it is measured, whole: a run that ends abruptly keeps every sample
+measured before, and a write that fails (a full disk) leaves no partial row behind.
 """
 
 from __future__ import annotations
 
 import csv
+import errno
+import io
 import math
+import os
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -66,13 +70,29 @@ def sample_row(sample: StrainSample) -> dict[str, Any]:
     }
 
 
+class StrainFileError(RuntimeError):
+    """A row could not be written; names the file and the cause, and how many rows it keeps."""
+
+
 class StrainCsvWriter:
     """A sink writing every sample as a CSV row.
+
+    Each row goes to the file in one piece as soon as it is measured. A write that fails is
+    undone (the file is cut back to its last whole row) and raised as `StrainFileError`; on a
+    full disk, `on_no_space` is called first and, when it says it freed room (a reserve file
+    released, `appliance.run.disk_space.DiskReserve`), the row is written once more.
 
     Args:
         path: file to create (its directory must exist).
         extra_columns: names of additional columns, after the standard ones.
         extras: returns the values of the extra columns for a sample.
+        on_no_space: called when the disk is full; returns True when it freed room.
+
+    Attributes:
+        rows: the rows written so far (the header not counted).
+
+    Raises:
+        OSError: the file cannot be created.
     """
 
     def __init__(
@@ -80,25 +100,66 @@ class StrainCsvWriter:
         path: str | Path,
         extra_columns: Sequence[str] = (),
         extras: Callable[[StrainSample], Mapping[str, Any]] | None = None,
+        *,
+        on_no_space: Callable[[], bool] | None = None,
     ) -> None:
         self.path = Path(path)
+        self.rows = 0
         self._extras = extras
-        self._file = self.path.open("w", newline="", encoding="utf-8")
-        self._writer = csv.DictWriter(self._file, fieldnames=[*COLUMNS, *extra_columns])
-        self._writer.writeheader()
-        self._file.flush()
+        self._on_no_space = on_no_space
+        self._text = io.StringIO()
+        self._csv = csv.DictWriter(self._text, fieldnames=[*COLUMNS, *extra_columns])
+        self._file = self.path.open("wb", buffering=0)
+        self._size = 0
+        self._csv.writeheader()
+        try:
+            self._append(self._pending())
+        except StrainFileError:
+            self._file.close()
+            raise
 
     def __call__(self, sample: StrainSample) -> None:
         row = sample_row(sample)
         if self._extras is not None:
             row.update(self._extras(sample))
-        self._writer.writerow({k: _format(v) for k, v in row.items()})
-        self._file.flush()
+        self._csv.writerow({k: _format(v) for k, v in row.items()})
+        self._append(self._pending())
+        self.rows += 1
 
     def close(self) -> None:
         """Close the file; safe to call twice."""
         if not self._file.closed:
             self._file.close()
+
+    def _pending(self) -> bytes:
+        data = self._text.getvalue().encode("utf-8")
+        self._text.seek(0)
+        self._text.truncate()
+        return data
+
+    def _append(self, data: bytes) -> None:
+        for attempt in (1, 2):
+            try:
+                view = memoryview(data)
+                while view:
+                    view = view[self._file.write(view) :]
+            except OSError as exc:
+                os.ftruncate(self._file.fileno(), self._size)
+                self._file.seek(self._size)
+                room = (
+                    attempt == 1
+                    and exc.errno == errno.ENOSPC
+                    and self._on_no_space is not None
+                    and self._on_no_space()
+                )
+                if room:
+                    continue
+                raise StrainFileError(
+                    f"{self.path}: cannot write ({exc.strerror}); "
+                    f"it keeps the {self.rows} rows written before"
+                ) from None
+            self._size += len(data)
+            return
 
 
 def _format(value: Any) -> Any:

@@ -126,6 +126,48 @@ def test_frame_limit_and_sink_failure():
     assert result.exit_status == "completed" and result.frames_processed == 3
 
 
+def test_a_failing_sink_ends_the_run_as_a_fault_and_the_others_get_every_sample_measured():
+    kept, recorded = [], []
+
+    def recording_fails_at_the_fourth_sample(sample):
+        if len(recorded) == 3:
+            raise OSError(28, "No space left on device")
+        recorded.append(sample.index)
+
+    loop = MeasurementLoop(
+        _camera(StretchingScene()),
+        None,
+        _setup,
+        sinks=[recording_fails_at_the_fourth_sample, kept.append],
+        block_when_full=True,
+        queue_size=4,
+    )
+    result = loop.run(StopCriteria(until_break=False))
+    assert result.exit_status == "fault" and result.final_state is RunState.FAULT
+    assert result.reason == "output: OSError: [Errno 28] No space left on device"
+    assert recorded == [0, 1, 2]
+    assert [s.index for s in kept] == list(range(result.frames_processed))
+    assert result.frames_processed >= 4
+
+
+def test_a_fault_requested_from_outside_ends_the_run_with_its_reason():
+    samples = []
+    loop = MeasurementLoop(
+        _camera(StretchingScene()), None, _setup, sinks=[samples.append], block_when_full=True
+    )
+
+    def fault_at_the_third_sample(sample):
+        if sample.index == 2:
+            loop.request_fault("strain file", OSError(28, "No space left on device"))
+
+    loop.immediate_sinks.append(fault_at_the_third_sample)
+    result = loop.run(StopCriteria(until_break=False))
+    assert result.exit_status == "fault"
+    assert result.reason == "strain file: OSError: [Errno 28] No space left on device"
+    assert [s.index for s in samples] == list(range(result.frames_processed))
+    assert 3 <= result.frames_processed < 20
+
+
 def test_a_hung_camera_stops_the_samples_and_a_stop_still_ends_the_run():
     camera = SimCamera(
         "sim://camera",
