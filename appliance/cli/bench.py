@@ -85,6 +85,38 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     _add_json_and_out(clock)
     clock.set_defaults(handler=_clock_sync)
 
+    _add_soak(benches)
+
+
+def _add_soak(benches: argparse._SubParsersAction) -> None:
+    from appliance.bench.soak import SHIPPED_CONFIGURATION
+
+    soak = benches.add_parser(
+        "soak",
+        help="serve back-to-back simulated tests: memory, files and threads per test",
+    )
+    soak.add_argument(
+        "--config",
+        type=Path,
+        default=SHIPPED_CONFIGURATION,
+        help="the service's configuration (default: the shipped systemd/extensometer.toml)",
+    )
+    soak.add_argument(
+        "--duration-s",
+        type=arguments.within(float, 1.0, 86400.0),
+        default=600.0,
+        help="how long to keep starting tests (default 600)",
+    )
+    soak.add_argument(
+        "--test-s",
+        type=arguments.within(float, 0.5, 3600.0),
+        default=5.0,
+        help="how long each test measures before the stop command (default 5)",
+    )
+    soak.add_argument("--no-viewer", action="store_true", help="without the Rerun server")
+    _add_json_and_out(soak)
+    soak.set_defaults(handler=_soak)
+
 
 def _add_out(parser: argparse.ArgumentParser, *, required: bool = False) -> None:
     parser.add_argument(
@@ -99,6 +131,19 @@ def _add_out(parser: argparse.ArgumentParser, *, required: bool = False) -> None
 def _add_json_and_out(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
     _add_out(parser)
+
+
+def _soak(args: argparse.Namespace) -> int:
+    from appliance.bench.soak import run_soak_benchmark
+
+    return run_soak_benchmark(
+        args.out,
+        args.json,
+        config=args.config,
+        duration_s=args.duration_s,
+        test_s=args.test_s,
+        viewer=not args.no_viewer,
+    )
 
 
 def _accuracy(args: argparse.Namespace) -> int:

@@ -8,8 +8,10 @@ before it first runs; every peer binds 127.0.0.1.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
+import os
 import queue
 import socket
 import subprocess
@@ -276,3 +278,29 @@ def test_a_full_queue_drops_and_counts_samples_and_never_blocks_the_measurement(
     assert len(rerun_peers.series(store, AXIAL_STRAIN)) == viewer.samples_shown
     result = rerun_peers.static(store, RESULT)
     assert result["viewer_samples_dropped"] == viewer.samples_dropped
+
+
+def _thread_count() -> int:
+    return len(os.listdir("/proc/self/task"))
+
+
+def test_a_served_viewer_keeps_no_thread_of_a_finished_test(tmp_path):
+    recorded = viewer_sender.record(10)
+    port = rerun_peers.free_port()
+    viewer = RerunViewer(RerunConfig(serve=f"127.0.0.1:{port}", queue_size=1000))
+    viewer.start()
+    counts = []
+    try:
+        for k in range(6):
+            facts = dataclasses.replace(
+                recorded.facts, facts={**recorded.facts.facts, "test_id": f"flat-{k}"}
+            )
+            viewer.begin(facts)
+            for sample in recorded.samples:
+                viewer(sample)
+            viewer.end(recorded.result)
+            assert viewer.problem is None and viewer.samples_shown == len(recorded.samples)
+            counts.append(_thread_count())
+    finally:
+        viewer.close()
+    assert counts[-1] <= counts[1], counts

@@ -72,6 +72,53 @@ _MAX_BATCH = 256
 _QUEUE_POLL_S = 0.05
 
 
+def _set_sinks_with_blueprint(
+    stream: rr.RecordingStream, sinks: Sequence, application_id: str
+) -> None:
+    """Give `stream` its sinks, with the viewer's layout as the application's default blueprint.
+
+    `RecordingStream.set_sinks(default_blueprint=...)` of rerun-sdk 0.41 logs the blueprint on a
+    stream of its own into a memory sink that refers back to that stream, so neither is ever
+    freed: two threads and their buffers per test under `serve`. The blueprint is logged here
+    the same way on a stream this function holds, which it disconnects once the blueprint has
+    been handed to `stream`'s sinks; that breaks the cycle. (rerun-sdk is pinned to 0.41: the
+    blueprint stream and `_log_to_stream` are its own internals.)
+
+    Raises:
+        RuntimeError: a sink cannot be opened (a file sink's path).
+    """
+    blueprint_stream = rr.RecordingStream._from_native(
+        rr.bindings.new_blueprint(
+            application_id=application_id,
+            make_default=False,
+            make_thread_default=False,
+            default_enabled=True,
+        )
+    )
+    try:
+        blueprint_stream.set_time("blueprint", sequence=0)
+        viewer_blueprint().to_blueprint()._log_to_stream(blueprint_stream)
+        blueprint = blueprint_stream.memory_recording()
+        rr.bindings.set_sinks(
+            list(sinks), default_blueprint=blueprint.storage, recording=stream.to_native()
+        )
+    finally:
+        blueprint_stream.disconnect()
+
+
+def _release_closed_streams() -> None:
+    """End the threads and free the buffers of recording streams nothing refers to any more.
+
+    rerun-sdk 0.41 keeps every Python-made `RecordingStream` alive in its registry after
+    `disconnect()` and after the last Python reference goes: its `RecordingStream` and
+    `ChunkBatcher` threads and buffers stay until the process ends (rerun issue #2116,
+    "Dropped unused python recordings"), two threads and a few MB per test under `serve`.
+    `flush_and_cleanup_orphaned_recordings` is what `rr.init` calls to free them; streams still
+    referenced (the service's server, another test's) are left alone.
+    """
+    rr.bindings.flush_and_cleanup_orphaned_recordings()
+
+
 class OneTestStream:
     """One test's recording: its stream, its queue and the thread that logs.
 
@@ -128,9 +175,12 @@ class OneTestStream:
             sinks.append(rr.FileSink(save))
         stream = rr.RecordingStream(application_id, recording_id=recording_id)
         try:
-            stream.set_sinks(*sinks, default_blueprint=viewer_blueprint())
+            _set_sinks_with_blueprint(stream, sinks, application_id)
         except RuntimeError as exc:
             self.ended = True
+            stream.disconnect()
+            del stream
+            _release_closed_streams()
             raise InputError(f"[rerun] save: {save}: {one_line(exc)}") from None
         stream.send_recording_name(recording_id)
         self._stream = stream
@@ -203,6 +253,8 @@ class OneTestStream:
                 f"a viewer went away; the rest of the test is not shown there ({one_line(exc)})"
             )
         self._stream.disconnect()
+        self._stream = None
+        _release_closed_streams()
 
     def _warn(self, message: str) -> None:
         if self.problem is None:

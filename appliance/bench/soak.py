@@ -1,0 +1,300 @@
+"""Soak benchmark: `serve` running test after test, with its memory, files and threads per test.
+
+`run_soak_benchmark(out, as_json, ...)` (the CLI's `extensometer bench soak`) runs
+`extensometer serve` as its own process with a service configuration (by default the shipped
+one, systemd/extensometer.toml: simulated camera and machine in real time, the Rerun server on),
+its Modbus server and Rerun server moved to free ports on 127.0.0.1 and its state directory to a
+temporary one (through `$STATE_DIRECTORY`, as systemd passes it). It then acts as the machine's
+controller over Modbus TCP, test after test for `duration_s`:
+
+1. writes the start command (register `command` = 1) and waits for `run_state` running;
+2. lets the test measure for `test_s`, then writes the stop command (2);
+3. waits for `run_state` idle with an `exit_status`, and reads the service's resident memory
+   (VmRSS), open file descriptors and threads from /proc.
+
+The figures are those three after every test, and their slope per test fitted by least squares
+over the tests after `warm_up_tests` (the first tests load the kernels, open the servers and
+fill caches). The goal: threads flat and RSS growing by less than 0.1 MB per test after warm-up.
+Each test's summary in the state directory gives the frames it measured, to show every test
+measured. What it does not measure: a test run to its end (each is stopped by the controller),
+a viewer connected to the Rerun server (none is), real devices.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from appliance.bench.peer_process import free_loopback_port
+
+SHIPPED_CONFIGURATION = Path(__file__).resolve().parents[2] / "systemd" / "extensometer.toml"
+RSS_GOAL_MB_PER_TEST = 0.1
+START_TIMEOUT_S = 180.0
+"""The longest a start command may take to reach `run_state` running (reference, warm-up)."""
+END_TIMEOUT_S = 120.0
+SERVICE_UP_TIMEOUT_S = 180.0
+SUMMARY_TIMEOUT_S = 10.0
+_POLL_S = 0.1
+_RUN_STATE_IDLE = 0
+_RUN_STATE_RUNNING = 2
+_COMMAND_START = 1
+_COMMAND_STOP = 2
+
+
+class SoakError(RuntimeError):
+    """The service did not do what the soak asked of it (one line, naming the step)."""
+
+
+def process_figures(pid: int) -> dict[str, float]:
+    """Resident memory (MB), open file descriptors and threads of process `pid`, from /proc."""
+    rss_kb = 0
+    with open(f"/proc/{pid}/status", encoding="ascii") as status:
+        for line in status:
+            if line.startswith("VmRSS:"):
+                rss_kb = int(line.split()[1])
+                break
+    return {
+        "rss_mb": rss_kb / 1024.0,
+        "fds": len(os.listdir(f"/proc/{pid}/fd")),
+        "threads": len(os.listdir(f"/proc/{pid}/task")),
+    }
+
+
+def slope_per_test(values: Sequence[float]) -> float | None:
+    """The least-squares slope of `values` against their index; None for fewer than 2."""
+    if len(values) < 2:
+        return None
+    index = np.arange(len(values), dtype=np.float64)
+    return float(np.polyfit(index, np.asarray(values, dtype=np.float64), 1)[0])
+
+
+class _Controller:
+    """The machine's controller as the soak plays it: start, wait, stop, over Modbus TCP."""
+
+    def __init__(self, port: int) -> None:
+        from pymodbus.client import ModbusTcpClient
+
+        from appliance.live.modbus_map import BY_NAME
+
+        self._client = ModbusTcpClient("127.0.0.1", port=port, timeout=5)
+        self._command = BY_NAME["command"].address
+        self._run_state = BY_NAME["run_state"].address
+        self._exit_status = BY_NAME["exit_status"].address
+
+    def connect(self, timeout_s: float, service: subprocess.Popen) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not self._client.connect():
+            if service.poll() is not None:
+                raise SoakError(f"the service exited with status {service.returncode}")
+            if time.monotonic() > deadline:
+                raise SoakError(f"no Modbus server after {timeout_s:g} s")
+            time.sleep(0.5)
+
+    def close(self) -> None:
+        self._client.close()
+
+    def command(self, code: int) -> None:
+        reply = self._client.write_register(self._command, code)
+        if reply.isError():
+            raise SoakError(f"command {code} refused: {reply}")
+
+    def state(self) -> tuple[int, int]:
+        reply = self._client.read_holding_registers(self._run_state, count=4)
+        if reply.isError():
+            raise SoakError(f"reading run_state: {reply}")
+        words = reply.registers
+        return words[0], words[self._exit_status - self._run_state]
+
+    def wait(self, done: Any, timeout_s: float, what: str) -> tuple[int, int]:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            state = self.state()
+            if done(*state):
+                return state
+            if time.monotonic() > deadline:
+                raise SoakError(
+                    f"{what}: not after {timeout_s:g} s (run_state, exit_status {state})"
+                )
+            time.sleep(_POLL_S)
+
+
+def _frames_of(state_directory: Path, known: set[Path]) -> tuple[int | None, int | None]:
+    """(frames processed, frames dropped) of the newest test summary not seen before
+    ((None, None) if none appeared)."""
+    deadline = time.monotonic() + SUMMARY_TIMEOUT_S
+    while not (new := sorted(set(state_directory.glob("*.summary.json")) - known)):
+        if time.monotonic() > deadline:
+            return None, None
+        time.sleep(_POLL_S)
+    known.update(new)
+    summary = json.loads(new[-1].read_text(encoding="utf-8"))
+    return summary.get("frames_processed"), summary.get("frames_dropped")
+
+
+def measure_soak(
+    config: Path = SHIPPED_CONFIGURATION,
+    *,
+    duration_s: float = 600.0,
+    test_s: float = 5.0,
+    warm_up_tests: int = 3,
+    viewer: bool = True,
+) -> dict[str, Any]:
+    """Serve back-to-back tests for `duration_s`; the service's figures after every test.
+
+    Raises:
+        SoakError: the service did not start, start a test, or end one in time (one line).
+    """
+    modbus_port = free_loopback_port()
+    rerun_port = free_loopback_port()
+    state_directory = Path(tempfile.mkdtemp(prefix="extensometer-soak-"))
+    environment = {**os.environ, "STATE_DIRECTORY": str(state_directory)}
+    command = [sys.executable, "-m", "appliance.cli", "serve", "--config", str(config)]
+    command += ["--modbus-tcp", f"127.0.0.1:{modbus_port}"]
+    command += ["--rerun-serve", f"127.0.0.1:{rerun_port}" if viewer else ""]
+    log_path = state_directory / "service.log"
+    tests: list[dict[str, Any]] = []
+    summaries: set[Path] = set()
+    started = time.monotonic()
+    with open(log_path, "w", encoding="utf-8") as log:
+        service = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=environment)
+        controller = _Controller(modbus_port)
+        try:
+            controller.connect(SERVICE_UP_TIMEOUT_S, service)
+            controller.wait(lambda s, _e: s == _RUN_STATE_IDLE, SERVICE_UP_TIMEOUT_S, "idle")
+            soak_start = time.monotonic()
+            while time.monotonic() - soak_start < duration_s:
+                test_start = time.monotonic()
+                controller.command(_COMMAND_START)
+                controller.wait(
+                    lambda s, _e: s == _RUN_STATE_RUNNING, START_TIMEOUT_S, "test running"
+                )
+                time.sleep(test_s)
+                controller.command(_COMMAND_STOP)
+                _, exit_status = controller.wait(
+                    lambda s, e: s == _RUN_STATE_IDLE and e != 0, END_TIMEOUT_S, "test ended"
+                )
+                figures = process_figures(service.pid)
+                figures["exit_status"] = exit_status
+                figures["frames"], figures["dropped"] = _frames_of(state_directory, summaries)
+                figures["test_s"] = time.monotonic() - test_start
+                tests.append(figures)
+        finally:
+            controller.close()
+            service.send_signal(signal.SIGTERM)
+            try:
+                service.wait(60)
+            except subprocess.TimeoutExpired:
+                service.kill()
+                service.wait(10)
+    log_tail = log_path.read_text(encoding="utf-8", errors="replace").splitlines()[-5:]
+    shutil.rmtree(state_directory, ignore_errors=True)
+    return _figures(tests, warm_up_tests, time.monotonic() - started, viewer, config, log_tail)
+
+
+def _figures(
+    tests: Sequence[Mapping[str, Any]],
+    warm_up_tests: int,
+    elapsed_s: float,
+    viewer: bool,
+    config: Path,
+    log_tail: Sequence[str],
+) -> dict[str, Any]:
+    after = list(tests[warm_up_tests:])
+    slopes = {key: slope_per_test([t[key] for t in after]) for key in ("rss_mb", "fds", "threads")}
+    threads_after = [t["threads"] for t in after]
+    rss_slope = slopes["rss_mb"]
+    return {
+        "configuration": str(config),
+        "viewer": viewer,
+        "elapsed_s": elapsed_s,
+        "tests": len(tests),
+        "warm_up_tests": warm_up_tests,
+        "per_test": list(tests),
+        "rss_mb_per_test": rss_slope,
+        "fds_per_test": slopes["fds"],
+        "threads_per_test": slopes["threads"],
+        "threads_range_after_warm_up": (
+            [min(threads_after), max(threads_after)] if threads_after else None
+        ),
+        "goal_rss_mb_per_test": RSS_GOAL_MB_PER_TEST,
+        "goal_met": bool(
+            rss_slope is not None
+            and rss_slope < RSS_GOAL_MB_PER_TEST
+            and threads_after
+            and max(threads_after) == min(threads_after)
+        ),
+        "service_log_tail": list(log_tail),
+    }
+
+
+def format_table(figures: Mapping[str, Any]) -> str:
+    """The figures as the report's table."""
+
+    def number(value: float | None, digits: int = 3) -> str:
+        return "-" if value is None else f"{value:.{digits}f}"
+
+    lines = [
+        f"configuration {figures['configuration']}, viewer {'on' if figures['viewer'] else 'off'}",
+        f"{figures['tests']} tests in {figures['elapsed_s']:.0f} s; slopes fitted after the "
+        f"first {figures['warm_up_tests']}",
+        "",
+        "test  exit  frames  dropped  rss_mb  fds  threads",
+    ]
+    for index, test in enumerate(figures["per_test"]):
+        frames = "-" if test["frames"] is None else str(test["frames"])
+        dropped = "-" if test["dropped"] is None else str(test["dropped"])
+        lines.append(
+            f"{index:4d}  {test['exit_status']:4d}  {frames:>6}  {dropped:>7}  "
+            f"{test['rss_mb']:6.1f}  {test['fds']:3d}  {test['threads']:7d}"
+        )
+    lines += [
+        "",
+        f"RSS per test after warm-up:     {number(figures['rss_mb_per_test'])} MB "
+        f"(goal < {figures['goal_rss_mb_per_test']} MB)",
+        f"threads per test after warm-up: {number(figures['threads_per_test'])} "
+        f"(range {figures['threads_range_after_warm_up']})",
+        f"fds per test after warm-up:     {number(figures['fds_per_test'])}",
+        f"goal met: {'yes' if figures['goal_met'] else 'no'}",
+    ]
+    return "\n".join(lines)
+
+
+def run_soak_benchmark(
+    out: Path | None,
+    as_json: bool,
+    *,
+    config: Path = SHIPPED_CONFIGURATION,
+    duration_s: float = 600.0,
+    test_s: float = 5.0,
+    viewer: bool = True,
+) -> int:
+    """Entry point of `extensometer bench soak`; prints the figures and writes the report into
+    `out` (when given). Returns 0 when measured (goal met or not), 1 when the service failed
+    the soak (the reason on stderr)."""
+    from appliance.bench.results import emit_figures
+
+    try:
+        figures = measure_soak(config, duration_s=duration_s, test_s=test_s, viewer=viewer)
+    except SoakError as exc:
+        sys.stderr.write(f"extensometer: bench soak: {exc}\n")
+        return 1
+    emit_figures(
+        "soak",
+        "Soak: serve running back-to-back tests",
+        figures,
+        format_table(figures),
+        as_json=as_json,
+        out=out,
+    )
+    return 0
