@@ -251,7 +251,9 @@ class ModbusConfig:
     RTU server); both may run at once with one register map. Floats are 32-bit in `big`
     word order (ABCD: high word first) or `little` (CDAB). `allow_write_from` lists the
     client IP addresses whose writes are accepted (empty = any client; RTU has no address
-    and is allowed whenever the list is empty).
+    and is allowed whenever the list is empty). At most `max_connections` TCP connections
+    are open at once (a new one beyond it drops the oldest idle one), and a TCP connection
+    that sends no complete request for `idle_timeout_s` is closed.
     """
 
     tcp: str = field(default="", metadata={"address": True})
@@ -262,6 +264,8 @@ class ModbusConfig:
     unit_id: int = field(default=1, metadata=_range(1, 247))
     word_order: str = field(default="big", metadata={"choices": ("big", "little")})
     allow_write_from: tuple[str, ...] = ()
+    max_connections: int = field(default=16, metadata=_range(1, 1024))
+    idle_timeout_s: float = field(default=60.0, metadata=_range(0.1, 86400.0))
 
 
 @dataclass(frozen=True)

@@ -20,15 +20,21 @@ Conventions the map follows:
 * A read may start or end in the middle of a multi-register value (it is a plain register
   read); a write must cover every writable value it touches completely.
 
+* Functions: 3 and 4 read, 6 and 16 write, 22 (mask write) and 23 (read/write multiple)
+  combine the two (`SERVED_FUNCTION_CODES`); the map has no coils or discrete inputs.
+
 Exception codes a client gets:
 
-* 1 (illegal function): a write from a TCP client not in `[modbus] allow_write_from` (when
-  the list is not empty), or any write over RTU when the list is not empty (a serial line has
-  no client address to check).
+* 1 (illegal function): a function not in `SERVED_FUNCTION_CODES` (coils, diagnostics,
+  file records, FIFO, device identification, ...), a write from a TCP client not in
+  `[modbus] allow_write_from` (when the list is not empty), or any write over RTU when the
+  list is not empty (a serial line has no client address to check).
 * 2 (illegal data address): an address outside the map, a write to a read-only register
   (reserved ones included), or a write that covers only part of a float (writing 103 alone).
 * 3 (illegal data value): a command code not listed, a gauge length set point that is NaN,
-  infinite or outside 1 ... 10000 mm.
+  infinite or outside 1 ... 10000 mm, or a request of a served function that does not decode
+  (too short, or a quantity the function does not allow: a read of 0 or more than 125
+  registers).
 * 4 (server device failure): the appliance failed while handling a command.
 
 What this module does not do: it holds no state and talks to no network; it does not know
@@ -216,6 +222,17 @@ COMMANDS: Mapping[int, str] = {1: "start", 2: "stop", 3: "zero"}
 
 GAUGE_LENGTH_COMMAND = "gauge_length"
 """The command handed to `on_command` (with the value) when the set point is written."""
+
+SERVED_FUNCTION_CODES: Mapping[int, str] = {
+    3: "read holding registers",
+    4: "read input registers",
+    6: "write single register",
+    16: "write multiple registers",
+    22: "mask write register",
+    23: "read/write multiple registers",
+}
+"""The Modbus functions the server serves; every other function (coils, discrete inputs,
+diagnostics, file records, FIFO, device identification, ...) gets exception 1."""
 
 
 class CommandResult(enum.IntEnum):

@@ -2,7 +2,7 @@
 
 `StrainRegisterServer` serves the register map of `appliance.live.modbus_map` over Modbus TCP, over
 Modbus RTU on a serial device, or both at once (one register image), as `[modbus]` in the
-configuration says. The pymodbus servers run on an asyncio loop in a background thread; the
+configuration says. The servers run on an asyncio loop in a background thread; the
 measurement never waits for the network:
 
 * `publish(sample, facts)` is called on the measurement thread right after a frame's strain
@@ -30,23 +30,39 @@ for broadcasts), as a device on a shared line must; over TCP it answers `unit_id
 and 255, the ids clients use for a device they reach directly. Requests to other ids get no
 answer.
 
+Functions: those of `modbus_map.SERVED_FUNCTION_CODES` (3, 4, 6, 16, 22, 23); any other
+function gets exception 1 before its request is looked at, over TCP and RTU alike. A request
+of a served function whose size or quantity Modbus does not allow gets exception 3.
+
+Modbus TCP runs on `modbus_connections.ModbusTcpListener` (asyncio streams): pipelined
+requests are all answered in order, at most `[modbus] max_connections` connections are open
+(one more drops the oldest idle one), a connection without a complete request for `[modbus]
+idle_timeout_s` is closed, a client that does not read its answers is no longer read and then
+closed, and every connection error goes to a `ThrottledLog` (one line per kind and 10 s, with
+a count); so does any error of the asyncio loop (a failed accept when file descriptors run
+out), never as a traceback. The listener hands each request's PDU to this server, which
+decodes it with pymodbus' `DecodePDU` and runs it against a pymodbus `SimCore` of the map.
+Modbus RTU is pymodbus' serial server.
+
 The datastore is pymodbus 3.16's SimDevice/SimData API: the map's entries become SimData
 blocks (read-only where the map says so, so pymodbus itself answers exception 2 to a write
 of a read-only register or an address outside the map), and the device's `action` callback
 copies this module's image into pymodbus' registers on every read and checks and executes
 every write. pymodbus internals this relies on (pinned by tests/system/test_modbus_server.py):
 
-* `ServerRequestHandler(owner, trace_packet, trace_pdu, trace_connect)` is what a server's
-  `callback_new_connection` returns, and its coroutine `handle_request()` serves
-  `self.last_pdu` (with its `dev_id`) to the end, awaiting the datastore's action inside the
-  same task; a subclass wraps it to learn the TCP peer (`transport.get_extra_info
-  ("peername")`) and to drop requests for other unit ids;
+* `SimCore(devices)` as the context of a request PDU's coroutine `datastore_update(context,
+  device_id)`, which awaits the action inside the same task (so the TCP client's IP, a
+  context variable, is seen by the write check);
+* `ServerRequestHandler(owner, trace_packet, trace_pdu, trace_connect)` is what the serial
+  server's `callback_new_connection` returns, and its coroutine `handle_request()` serves
+  `self.last_pdu` (with its `dev_id`) to the end; a subclass wraps it to drop requests for
+  other unit ids and to refuse functions the map does not serve;
 * the SimDevice action's arguments `(function_code, start_address, address, count,
   current_registers, set_values)`, `set_values` None for reads, and pymodbus answering a read
   from `current_registers` right after the action returns (no await in between);
-* `serve_forever(background=True)` returning once listening and raising RuntimeError when it
-  cannot (it logs the cause and swallows it, so the address is probed first, by binding or
-  opening it once, to name the cause in the error).
+* `serve_forever(background=True)` of the serial server returning once the device is open
+  and raising RuntimeError when it cannot (it logs the cause and swallows it, so the device
+  is opened once first, to name the cause in the error).
 
 What it does not do: it is not a Modbus client, it does not decide what a command does (the
 `on_command` callback does), it keeps no history (only the latest sample), and it has no TLS
@@ -68,13 +84,16 @@ from concurrent.futures import TimeoutError as FutureTimeoutError
 from typing import TYPE_CHECKING, Any
 
 from pymodbus.constants import ExcCodes
-from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+from pymodbus.pdu import DecodePDU, ExceptionResponse
+from pymodbus.server import ModbusSerialServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import DataType, SimData, SimDevice
+from pymodbus.simulator.simcore import SimCore
 
 from appliance.config import ModbusConfig, parse_address
 from appliance.errors import InputError
 from appliance.live import modbus_map
+from appliance.live.modbus_connections import ModbusTcpListener
 from appliance.live.modbus_map import (
     BY_NAME,
     COMMANDS,
@@ -84,11 +103,13 @@ from appliance.live.modbus_map import (
     MEASUREMENT_BLOCK,
     REGISTER_MAP,
     RUN_STATE_CODES,
+    SERVED_FUNCTION_CODES,
     CommandResult,
     Register,
     RegisterType,
     StatusBit,
 )
+from appliance.live.throttled_log import ThrottledLog
 from appliance.run.state import ExitStatus, RunState
 
 if TYPE_CHECKING:
@@ -103,10 +124,6 @@ CommandHandler = Callable[[str, float | None], bool]
 
 TCP_DIRECT_UNIT_IDS = (0, 255)
 """Unit ids a TCP client uses for a device it reaches directly; answered besides `unit_id`."""
-
-REGISTER_FUNCTION_CODES = frozenset((3, 4, 6, 16, 22, 23))
-"""Functions served: read holding/input registers, write single/multiple, mask write,
-read/write multiple. Coil and discrete-input functions get exception 1 (the map has none)."""
 
 _client_ip: contextvars.ContextVar[str | None] = contextvars.ContextVar(
     "modbus_client_ip", default=None
@@ -126,44 +143,32 @@ class ServerStartError(InputError):
     """
 
 
-class _RequestHandler(ServerRequestHandler):
-    """pymodbus' per-connection handler, told the client's IP and the unit ids to answer."""
+class _RtuRequestHandler(ServerRequestHandler):
+    """pymodbus' handler of the serial line, told the unit ids and the functions to answer."""
 
     async def handle_request(self) -> None:
         pdu = self.last_pdu
         if pdu is None or pdu.dev_id not in self.server.unit_ids:
             return
-        peer = None
-        if self.server.knows_peers and self.transport is not None:
-            name = self.transport.get_extra_info("peername")
-            peer = _normalised_ip(name[0]) if name else None
-        token = _client_ip.set(peer)
-        try:
-            await super().handle_request()
-        finally:
-            _client_ip.reset(token)
-
-
-class _TcpServer(ModbusTcpServer):
-    knows_peers = True
-
-    def __init__(self, device: SimDevice, address: tuple[str, int], unit_ids: Sequence[int]):
-        super().__init__(device, address=address)
-        self.unit_ids = frozenset(unit_ids)
-
-    def callback_new_connection(self) -> _RequestHandler:
-        return _RequestHandler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
+        if pdu.function_code not in SERVED_FUNCTION_CODES:
+            refused = ExceptionResponse(
+                pdu.function_code,
+                ExcCodes.ILLEGAL_FUNCTION,
+                device_id=pdu.dev_id,
+                transaction=pdu.transaction_id,
+            )
+            self.server_send(refused, self.last_addr)
+            return
+        await super().handle_request()
 
 
 class _SerialServer(ModbusSerialServer):
-    knows_peers = False
-
     def __init__(self, device: SimDevice, unit_ids: Sequence[int], **serial: Any):
         super().__init__(device, **serial)
         self.unit_ids = frozenset(unit_ids)
 
-    def callback_new_connection(self) -> _RequestHandler:
-        return _RequestHandler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
+    def callback_new_connection(self) -> _RtuRequestHandler:
+        return _RtuRequestHandler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
 
 
 def _normalised_ip(text: str) -> str:
@@ -181,6 +186,7 @@ class StrainRegisterServer:
         config: the `[modbus]` table. `tcp` = "HOST:PORT" to listen on (empty = no TCP),
             `rtu_device` = serial device for RTU (empty = no RTU); with neither, `start`
             serves nothing and the image is still kept (publishing costs the same).
+            `max_connections` and `idle_timeout_s` bound the TCP connections.
         on_command: called on the server's thread for each command a client writes:
             ("start" | "stop" | "zero", None) or ("gauge_length", mm); returns whether it
             was accepted in the current run state. An exception it raises is answered with
@@ -225,7 +231,12 @@ class StrainRegisterServer:
         self._sample_parts = self._contiguous_parts(_SAMPLE_BLOCK)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
-        self._servers: list[_TcpServer | _SerialServer] = []
+        self._servers: list[_SerialServer] = []
+        self._listener: ModbusTcpListener | None = None
+        self._tcp_unit_ids = frozenset((config.unit_id, *TCP_DIRECT_UNIT_IDS))
+        self._tcp_context: SimCore | None = None
+        self._decoder = DecodePDU(True)
+        self._log = ThrottledLog(_log)
         self._closed = False
         for register in MEASUREMENT_BLOCK:
             if register.data_type is RegisterType.FLOAT32:
@@ -285,6 +296,7 @@ class StrainRegisterServer:
                 _log.warning("modbus server did not close within %g s", timeout_s)
             loop.call_soon_threadsafe(loop.stop)
         thread.join(timeout_s)
+        self._log.flush(force=True)
 
     def __enter__(self) -> StrainRegisterServer:
         self.start()
@@ -437,7 +449,7 @@ class StrainRegisterServer:
         set_values: list[int] | list[bool] | None,
     ) -> ExcCodes | None:
         """pymodbus' SimDevice action: every read and write of a register passes here."""
-        if function_code not in REGISTER_FUNCTION_CODES:
+        if function_code not in SERVED_FUNCTION_CODES:
             return ExcCodes.ILLEGAL_FUNCTION
         if set_values is None:
             offset = address - start_address
@@ -507,9 +519,10 @@ class StrainRegisterServer:
         ]
         return SimDevice(id=0, simdata=blocks, action=self._on_access)
 
-    @staticmethod
-    def _run_loop(loop: asyncio.AbstractEventLoop) -> None:
+    def _run_loop(self, loop: asyncio.AbstractEventLoop) -> None:
         asyncio.set_event_loop(loop)
+        loop.set_exception_handler(self._on_loop_error)
+        loop.call_soon(self._flush_log_periodically, loop)
         try:
             loop.run_forever()
         finally:
@@ -520,6 +533,49 @@ class StrainRegisterServer:
             loop.run_until_complete(loop.shutdown_asyncgens())
             loop.close()
 
+    def _flush_log_periodically(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._log.flush()
+        loop.call_later(self._log.interval_s, self._flush_log_periodically, loop)
+
+    def _on_loop_error(self, loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
+        """asyncio's errors (a failed accept when file descriptors run out, ...): one line."""
+        exc = context.get("exception")
+        cause = f": {type(exc).__name__}: {exc}" if exc is not None else ""
+        self._log.note("loop", f"modbus server: {context.get('message', 'error')}{cause}")
+
+    async def _answer_tcp(self, unit_id: int, request: bytes, client: str | None) -> bytes | None:
+        """One Modbus TCP request PDU -> its response PDU (None: not for this server)."""
+        if unit_id not in self._tcp_unit_ids:
+            return None
+        token = _client_ip.set(_normalised_ip(client) if client else None)
+        try:
+            return await self._respond(unit_id, request)
+        finally:
+            _client_ip.reset(token)
+
+    async def _respond(self, unit_id: int, request: bytes) -> bytes:
+        """A request PDU -> the response PDU: a served function's answer or an exception.
+
+        Functions the map does not serve get exception 1 before anything else is looked at; a
+        request of a served function that does not decode (short, or a quantity outside what
+        the function allows) gets exception 3.
+        """
+        function_code = request[0]
+        if function_code not in SERVED_FUNCTION_CODES:
+            return bytes((function_code | 0x80, ExcCodes.ILLEGAL_FUNCTION))
+        pdu = self._decoder.decode(request) if _well_formed(request) else None
+        if pdu is None:
+            return bytes((function_code | 0x80, ExcCodes.ILLEGAL_VALUE))
+        pdu.dev_id = unit_id
+        try:
+            response = await pdu.datastore_update(self._tcp_context, unit_id)
+        except Exception as exc:
+            self._log.note(
+                "request", f"modbus request {function_code} failed: {type(exc).__name__}: {exc}"
+            )
+            return bytes((function_code | 0x80, ExcCodes.DEVICE_FAILURE))
+        return bytes((response.function_code,)) + response.encode()
+
     async def _open_servers(self) -> None:
         config = self.config
         if self._tcp is not None:
@@ -527,11 +583,18 @@ class StrainRegisterServer:
             cause = _tcp_failure(*self._tcp)
             if cause is not None:
                 raise ServerStartError(f"{where}: {cause}")
-            server = _TcpServer(self._device(), self._tcp, (config.unit_id, *TCP_DIRECT_UNIT_IDS))
-            self._servers.append(server)
+            self._tcp_context = SimCore(self._device())
+            listener = ModbusTcpListener(
+                *self._tcp,
+                self._answer_tcp,
+                max_connections=config.max_connections,
+                idle_timeout_s=config.idle_timeout_s,
+                log=self._log,
+            )
+            self._listener = listener
             try:
-                await server.serve_forever(background=True)
-            except (RuntimeError, OSError) as exc:
+                await listener.start()
+            except OSError as exc:
                 raise ServerStartError(f"{where}: {_tcp_failure(*self._tcp) or exc}") from None
         if config.rtu_device:
             where = f"[modbus] rtu_device {config.rtu_device}"
@@ -554,9 +617,46 @@ class StrainRegisterServer:
                 raise ServerStartError(f"{where}: {_serial_failure(config) or exc}") from None
 
     async def _close_servers(self) -> None:
+        listener, self._listener = self._listener, None
+        if listener is not None:
+            await listener.close()
         servers, self._servers = self._servers, []
         for server in servers:
             await server.shutdown()
+
+
+def _well_formed(request: bytes) -> bool:
+    """Whether a request PDU of a served function has the size and quantities Modbus allows.
+
+    Reads ask for 1 ... 125 registers, a write multiple for 1 ... 123 with a byte count of
+    twice that, read/write multiple for 1 ... 125 and 1 ... 121; the PDU holds exactly what
+    its fields say. Checked before pymodbus decodes it, which would log every failure.
+    """
+    size = len(request)
+    function_code = request[0]
+    if function_code in (3, 4):
+        return size == 5 and 1 <= int.from_bytes(request[3:5], "big") <= 125
+    if function_code == 6:
+        return size == 5
+    if function_code == 22:
+        return size == 7
+    if function_code == 16:
+        if size < 6:
+            return False
+        count, byte_count = int.from_bytes(request[3:5], "big"), request[5]
+        return 1 <= count <= 123 and byte_count == 2 * count and size == 6 + byte_count
+    if function_code == 23:
+        if size < 10:
+            return False
+        reads = int.from_bytes(request[3:5], "big")
+        writes, byte_count = int.from_bytes(request[7:9], "big"), request[9]
+        return (
+            1 <= reads <= 125
+            and 1 <= writes <= 121
+            and byte_count == 2 * writes
+            and size == 10 + byte_count
+        )
+    return False
 
 
 def _tcp_failure(host: str, port: int) -> str | None:

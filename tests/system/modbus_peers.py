@@ -13,6 +13,7 @@ import math
 import re
 import shutil
 import socket
+import struct
 import subprocess
 import time
 from collections.abc import Iterator, Sequence
@@ -204,3 +205,124 @@ def make_facts(epoch_offset_ns: int = 1_700_000_000_000_000_000) -> RunFacts:
         gauge_length_mm=5.0,
         epoch_offset_ns=epoch_offset_ns,
     )
+
+
+MBAP_HEADER = struct.Struct(">HHHB")
+"""Modbus TCP's MBAP header: transaction id, protocol id (0), length (unit id + PDU), unit id."""
+
+
+def mbap(transaction_id: int, pdu: bytes, unit_id: int = 1, protocol_id: int = 0) -> bytes:
+    """One Modbus TCP frame (ADU): the MBAP header and `pdu`."""
+    return MBAP_HEADER.pack(transaction_id, protocol_id, len(pdu) + 1, unit_id) + pdu
+
+
+def read_registers_pdu(address: int, count: int, function_code: int = 3) -> bytes:
+    """A read holding (3) or input (4) registers request PDU."""
+    return struct.pack(">BHH", function_code, address, count)
+
+
+def split_frames(data: bytes) -> tuple[list[tuple[int, int, int, bytes]], bytes]:
+    """Complete MBAP frames in `data` as (transaction id, protocol id, unit id, PDU), and the rest.
+
+    A frame whose length field is below 2 ends the split (the rest is returned unsplit).
+    """
+    frames = []
+    while len(data) >= MBAP_HEADER.size:
+        transaction_id, protocol_id, length, unit_id = MBAP_HEADER.unpack_from(data)
+        end = MBAP_HEADER.size - 1 + length
+        if length < 2 or len(data) < end:
+            break
+        frames.append((transaction_id, protocol_id, unit_id, data[MBAP_HEADER.size : end]))
+        data = data[end:]
+    return frames, data
+
+
+def receive_frames(
+    sock: socket.socket, count: int, timeout_s: float = 10.0
+) -> list[tuple[int, int, int, bytes]]:
+    """Read from `sock` until `count` whole frames came, the peer closed or `timeout_s` passed."""
+    data = b""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        frames, _ = split_frames(data)
+        left_s = deadline - time.monotonic()
+        if len(frames) >= count or left_s <= 0:
+            return frames
+        sock.settimeout(left_s)
+        try:
+            chunk = sock.recv(65536)
+        except (TimeoutError, ConnectionError):
+            return frames
+        if not chunk:
+            return frames
+        data += chunk
+
+
+def receive_until_closed(sock: socket.socket, timeout_s: float = 10.0) -> tuple[bytes, bool]:
+    """Everything `sock` receives until the peer closes it: (bytes, whether it closed in time).
+
+    A reset counts as closed.
+    """
+    data = b""
+    deadline = time.monotonic() + timeout_s
+    while (left_s := deadline - time.monotonic()) > 0:
+        sock.settimeout(left_s)
+        try:
+            chunk = sock.recv(65536)
+        except TimeoutError:
+            break
+        except ConnectionError:
+            return data, True
+        if not chunk:
+            return data, True
+        data += chunk
+    return data, False
+
+
+def is_closed_by_peer(sock: socket.socket) -> bool:
+    """Whether the peer closed (or reset) `sock`, without waiting; unread data is discarded."""
+    sock.setblocking(False)
+    try:
+        while True:
+            chunk = sock.recv(65536)
+            if not chunk:
+                return True
+    except BlockingIOError:
+        return False
+    except ConnectionError:
+        return True
+
+
+def timed_read(port: int, timeout_s: float = 10.0, unit_id: int = 1) -> float:
+    """Seconds one read of registers 0 ... 13 takes on a fresh connection (connect included).
+
+    Raises:
+        AssertionError: no valid answer within `timeout_s`.
+    """
+    started = time.monotonic()
+    with socket.create_connection(("127.0.0.1", port), timeout=timeout_s) as sock:
+        sock.sendall(mbap(4242, read_registers_pdu(0, 14), unit_id))
+        frames = receive_frames(sock, 1, timeout_s)
+    assert frames, f"no answer to a read within {timeout_s:g} s"
+    transaction_id, _, _, pdu = frames[0]
+    assert transaction_id == 4242 and pdu[:2] == bytes((3, 28)), frames[0]
+    return time.monotonic() - started
+
+
+_TCP_CLOSE_WAIT, _TCP_CLOSE = 8, 7
+"""Linux TCP states (tcpi_state) of a socket whose peer has sent FIN, or reset it."""
+
+
+def wait_closed_by_peer_unread(sock: socket.socket, timeout_s: float) -> bool:
+    """Whether the peer closes or resets `sock` within `timeout_s`, without reading from it.
+
+    Reads the socket's TCP state (Linux TCP_INFO), so a client that never reads stays one.
+    """
+    deadline = time.monotonic() + timeout_s
+    while True:
+        state = sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, 1)[0]
+        if state in (_TCP_CLOSE_WAIT, _TCP_CLOSE):
+            return True
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)

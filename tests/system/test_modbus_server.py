@@ -11,15 +11,18 @@ import dataclasses
 import inspect
 import json
 import math
+import struct
 import threading
 import time
 
 import numpy as np
 import pytest
 from pymodbus.client import ModbusTcpClient
-from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+from pymodbus.pdu import DecodePDU
+from pymodbus.server import ModbusSerialServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import SimDevice
+from pymodbus.simulator.simcore import SimCore
 
 from appliance.bench.modbus import run_modbus_benchmark
 from appliance.config import ModbusConfig
@@ -380,6 +383,24 @@ def test_rtu_writes_are_refused_when_an_allow_list_is_set(serve, commands, tmp_p
     assert commands.calls == []
 
 
+@needs_mbpoll
+@needs_socat
+def test_coil_functions_get_illegal_function_over_tcp_and_rtu(serve, commands, tmp_path):
+    with pty_pair(tmp_path) as (server_end, client_end):
+        _, port = serve(rtu_device=server_end, rtu_baud=115200)
+        rtu = ("-m", "rtu", "-b", "115200", "-P", "none", "-a", "1", "-0")
+        for kind in ("0", "1"):
+            over_rtu = _failure(mbpoll(*rtu, "-1", "-r", "100", "-t", kind, client_end))
+            assert "Illegal function" in over_rtu, kind
+            assert "Illegal function" in _failure(mbpoll_tcp(port, "-1", "-r", "100", "-t", kind))
+        single_coil = _failure(mbpoll(*rtu, "-r", "100", "-t", "0", client_end, "--", "1"))
+        assert "Illegal function" in single_coil
+        over_tcp = _failure(mbpoll_tcp(port, "-r", "100", "-t", "0", write=["1"]))
+        assert "Illegal function" in over_tcp
+        assert mbpoll(*rtu, "-1", "-r", "100", client_end).returncode == 0
+    assert commands.calls == []
+
+
 def test_start_names_the_culprit_and_close_releases_everything(commands, tmp_path):
     port = free_tcp_port()
     first = StrainRegisterServer(ModbusConfig(tcp=f"127.0.0.1:{port}"), commands)
@@ -484,11 +505,19 @@ def test_pymodbus_internals_the_server_relies_on_are_there():
         "trace_connect",
     ]
     assert inspect.iscoroutinefunction(ServerRequestHandler.handle_request)
-    for server in (ModbusTcpServer, ModbusSerialServer):
-        assert callable(server.callback_new_connection)
-        serve_forever = inspect.signature(server.serve_forever)
-        assert serve_forever.parameters["background"].kind is inspect.Parameter.KEYWORD_ONLY
+    assert callable(ModbusSerialServer.callback_new_connection)
+    serve_forever = inspect.signature(ModbusSerialServer.serve_forever)
+    assert serve_forever.parameters["background"].kind is inspect.Parameter.KEYWORD_ONLY
     assert "action" in {f.name for f in dataclasses.fields(SimDevice)}
+    assert list(inspect.signature(SimCore).parameters) == ["devices"]
+    request = DecodePDU(True).decode(struct.pack(">BHH", 3, 0, 2))
+    assert request is not None and (request.address, request.count) == (0, 2)
+    assert inspect.iscoroutinefunction(request.datastore_update)
+    assert list(inspect.signature(request.datastore_update).parameters) == [
+        "context",
+        "device_id",
+    ]
+    assert DecodePDU(True).decode(struct.pack(">BHH", 3, 0, 126)) is None
 
 
 def test_latency_benchmark_runs_and_writes_its_report(tmp_path, capsys):

@@ -19,6 +19,7 @@ from appliance.live.modbus_map import (
     MEASUREMENT_BLOCK,
     REGISTER_MAP,
     RUN_STATE_CODES,
+    SERVED_FUNCTION_CODES,
     Access,
     Register,
     RegisterType,
@@ -202,3 +203,12 @@ def test_readme_register_table_matches_the_map():
         f"{README}: register table differs from appliance.live.modbus_map; regenerate it with "
         "python -c 'from appliance.live.modbus_map import render_markdown_table as t; print(t())'"
     )
+
+
+def test_the_served_functions_are_register_reads_and_writes_only_and_the_guide_names_them():
+    assert set(SERVED_FUNCTION_CODES) == {3, 4, 6, 16, 22, 23}
+    text = README.read_text(encoding="utf-8")
+    bullet = " ".join(text[text.index("- **Functions.**") :].split("\n\n")[0].split())
+    for code in (1, 2, 5, 8, 15, 17, 20, 21, 24, 43):
+        assert re.search(rf"\b{code}\b", bullet), code
+    assert bullet.endswith("gets exception 1."), bullet
