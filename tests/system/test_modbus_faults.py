@@ -17,6 +17,8 @@ import random
 import re
 import socket
 import struct
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -257,6 +259,52 @@ def test_a_connection_flood_drops_the_oldest_idle_and_lets_the_controller_in(ser
         server.close()
     _assert_log_is_bounded(log_records)
     assert _events_counted(log_records, "dropped the oldest idle") >= len(flood) - limit
+
+
+RUN_WITH_FEW_DESCRIPTORS = """
+import logging, resource, sys, time
+from appliance.config import ModbusConfig
+from appliance.live.modbus_server import StrainRegisterServer
+logging.basicConfig(level=logging.INFO, stream=sys.stderr)
+resource.setrlimit(resource.RLIMIT_NOFILE, (64, resource.getrlimit(resource.RLIMIT_NOFILE)[1]))
+config = ModbusConfig(tcp=sys.argv[1], max_connections=500, idle_timeout_s=1.0)
+server = StrainRegisterServer(config, lambda name, value: True)
+server.start(timeout_s=30.0)
+print("serving", flush=True)
+sys.stdin.read()
+server.close()
+"""
+
+
+def test_running_out_of_descriptors_costs_one_log_line_and_heals(tmp_path):
+    port = free_tcp_port()
+    process = subprocess.Popen(
+        [sys.executable, "-c", RUN_WITH_FEW_DESCRIPTORS, f"127.0.0.1:{port}"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=(tmp_path / "log").open("w"),
+        text=True,
+        cwd=Path(__file__).parents[2],
+    )
+    flood: list[socket.socket] = []
+    try:
+        assert process.stdout is not None and process.stdout.readline() == "serving\n"
+        for _ in range(150):
+            flood.append(_connect(port, timeout_s=5.0))
+        time.sleep(3.0)
+        for sock in flood:
+            sock.close()
+        assert timed_read(port, timeout_s=10.0) < 10.0, "accepting never resumed"
+    finally:
+        for sock in flood:
+            sock.close()
+        assert process.stdin is not None
+        process.stdin.close()
+        process.wait(timeout=30)
+    log = (tmp_path / "log").read_text(encoding="utf-8")
+    assert "Traceback" not in log, log[:2000]
+    assert 1 <= log.count("out of system resource") <= 3, log[:2000]
+    assert len(log.splitlines()) <= LOG_BOUND, log[:2000]
 
 
 def _events_counted(caplog, what: str) -> int:
