@@ -1,9 +1,12 @@
 """`extensometer replay` and `extensometer info`: recordings measured again, and summarised.
 
 `replay` measures a recorded test again from its recorded pixels
-(`appliance.recording.replay.replay_recording`) and exits 1 when the file is damaged or, without an
-override, when any sample differs from the recording; `info` reads a recording front to back
-with every CRC checked (`appliance.recording.info`) and exits 1 when the file is not whole.
+(`appliance.recording.replay.replay_recording`) and exits 1 when the file is damaged (one line
+on stderr: the damage, how many of the recorded samples were measured, and where the reference
+frame was read when not from its attachment) or, without an override, when any sample differs
+from the recording; `info` reads a recording front to back with every CRC checked
+(`appliance.recording.info`) and exits 1 when the file is not whole. Both refuse a file that is
+not one extensometer recording with exit status 2.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
             "configuration: the strain series is reproduced bit for bit "
             "(max_abs_diff_to_recorded = 0.0). With --config, the tables and keys of that "
             "file replace the recorded ones and the test is measured again. A damaged file "
-            "is replayed up to the damage, which is reported."
+            "is replayed up to the damage, which is reported (exit status 1)."
         ),
     )
     replay.add_argument("recording", metavar="FILE.mcap", type=Path, help="a recording")
@@ -71,9 +74,8 @@ def replay_test(args: argparse.Namespace) -> int:
         print(outcome.to_json())
     else:
         print_summary(outcome)
-    damage = outcome.extra.get("damage")
-    if damage:
-        print(f"extensometer: {args.recording}: {damage}", file=sys.stderr)
+    if outcome.extra.get("damage"):
+        print(f"extensometer: {args.recording}: {outcome.summary.reason}", file=sys.stderr)
         return 1
     if args.config is None and not is_exact(outcome):
         print(

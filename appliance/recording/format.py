@@ -45,6 +45,7 @@ import cv2
 import numpy as np
 from foxglove_schemas_protobuf.Log_pb2 import Log
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+from google.protobuf.message import DecodeError
 from mcap_protobuf.schema import build_file_descriptor_set
 
 from appliance.measure.frame_measurer import StrainSample
@@ -283,7 +284,10 @@ def raw_image(image: np.ndarray, time_ns: int, frame_id: str = "camera") -> byte
 
 def image_of(data: bytes) -> np.ndarray:
     """The grey image of a serialised `foxglove.RawImage` written by `raw_image`."""
-    message = RawImage.FromString(data)
+    try:
+        message = RawImage.FromString(data)
+    except DecodeError as exc:
+        raise FormatError(f"not a foxglove.RawImage ({exc})") from None
     dtypes = {"mono8": np.uint8, "mono16": np.dtype("<u2")}
     if message.encoding not in dtypes:
         raise FormatError(f"RawImage encoding {message.encoding!r} is not mono8 or mono16")

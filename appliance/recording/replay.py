@@ -19,7 +19,14 @@ that happened. The points and their marks always come from the recording, so an 
 any other table (`[gauge] length_mm`, the camera, the optics, ...) cannot be applied and is
 refused in one line naming it, never silently ignored.
 
-A truncated or corrupted file replays up to the damage; the summary's `damage` says where.
+The file is read whole once before anything is measured, so a file that cannot be replayed
+(not one extensometer recording, its configuration or marks unreadable, its reference frame
+lost) is refused in one line naming it, with the damage when there is some. A truncated or
+corrupted file replays up to the damage (`appliance.recording.reader`): the summary's `damage`
+says where, `recorded_samples` how many samples the recording holds (when its end was read).
+When the `reference.png` attachment is damaged or missing, the reference frame is read from
+the `/camera/full` frame recorded with it (`reference_frame` says which); the file is still
+reported as damaged.
 """
 
 from __future__ import annotations
@@ -42,7 +49,9 @@ from appliance.measure.gauges import Calibration, Gauge, StrainGaugesLayout
 from appliance.recording.format import (
     REFERENCE_ATTACHMENT,
     STRAIN_FIELDS,
+    TOPIC_FULL,
     FormatError,
+    image_of,
     image_of_png,
     machine_of,
     number,
@@ -68,6 +77,7 @@ class _Setup:
     measurer: FrameMeasurer
     shape: tuple[int, int]
     dtype: np.dtype
+    reference_source: str
 
 
 REPLAYABLE_TABLES = ("tracking",)
@@ -99,7 +109,21 @@ def _checked_override(path: Path) -> dict:
 
 
 def _setup(reader: RecordingReader, override: Path | None) -> _Setup:
+    """What measures the recording again, from what the whole file read said; InputError
+    naming the file when it is not a replayable recording (with the damage, if any)."""
+    if reader.meta("recording") is None and reader.damages:
+        raise InputError(f"{reader.path}: nothing to replay: {reader.describe_damage()}")
     reader.check_format()
+    try:
+        return _built(reader, override)
+    except InputError as exc:
+        damage = reader.describe_damage()
+        if damage is None:
+            raise
+        raise InputError(f"{exc} ({damage})") from None
+
+
+def _built(reader: RecordingReader, override: Path | None) -> _Setup:
     table = config_table(reader)
     if override is not None:
         table = merge_tables(table, _checked_override(override))
@@ -107,10 +131,8 @@ def _setup(reader: RecordingReader, override: Path | None) -> _Setup:
     start = reader.require("run_start")
     calibration_meta = reader.require("calibration")
     marks_meta = reader.require("marks")
-    if REFERENCE_ATTACHMENT not in reader.attachments:
-        raise InputError(f"{reader.path}: the reference frame ({REFERENCE_ATTACHMENT}) is missing")
     try:
-        reference_image = image_of_png(reader.attachments[REFERENCE_ATTACHMENT])
+        reference_image, reference_source = _reference_image(reader, start)
         points = np.array(json.loads(marks_meta["points"]), dtype=np.float64)
         axial = json.loads(marks_meta["axial"])
         transverse = json.loads(marks_meta["transverse"])
@@ -118,6 +140,7 @@ def _setup(reader: RecordingReader, override: Path | None) -> _Setup:
             Gauge(tuple(axial[0]), tuple(axial[1])),
             None if transverse is None else Gauge(tuple(transverse[0]), tuple(transverse[1])),
         )
+        marks = tuple(tuple(int(k) for k in mark) for mark in json.loads(marks_meta["marks"]))
         calibration = Calibration(float(calibration_meta["scale_mm_per_px"]))
         reference = Frame(
             image=reference_image,
@@ -126,7 +149,7 @@ def _setup(reader: RecordingReader, override: Path | None) -> _Setup:
             exposure_us=float(start["reference_exposure_us"]),
         )
         epoch_offset_ns = int(start["epoch_offset_ns"])
-    except (KeyError, ValueError, TypeError, FormatError) as exc:
+    except (KeyError, ValueError, TypeError, IndexError, OverflowError, FormatError) as exc:
         raise InputError(
             f"{reader.path}: the recorded run facts are not readable ({exc})"
         ) from None
@@ -136,13 +159,13 @@ def _setup(reader: RecordingReader, override: Path | None) -> _Setup:
         tracker, gauges = tracker_and_gauges(
             config.tracking, reference_image, points, layout, calibration
         )
-    except ValueError as exc:
+    except (ValueError, TypeError, IndexError) as exc:
         raise InputError(f"{reader.path}: the recorded marks cannot be tracked ({exc})") from None
     facts = RunFacts(
         config=config,
         reference=reference,
         points=points,
-        marks=tuple(tuple(m) for m in json.loads(marks_meta["marks"])),
+        marks=marks,
         layout=layout,
         calibration=calibration,
         gauge_length_mm=gauges.gauge_length_mm,
@@ -151,7 +174,40 @@ def _setup(reader: RecordingReader, override: Path | None) -> _Setup:
         facts=run_facts(reader),
     )
     measurer = FrameMeasurer(tracker, gauges, reference.timestamp_ns)
-    return _Setup(facts, measurer, reference_image.shape, reference_image.dtype)
+    return _Setup(facts, measurer, reference_image.shape, reference_image.dtype, reference_source)
+
+
+def _reference_image(reader: RecordingReader, start: dict[str, str]) -> tuple[np.ndarray, str]:
+    """The reference frame's image and where it was read: the `reference.png` attachment, or,
+    when that is damaged or missing, the `/camera/full` frame recorded with it (sequence 0 at
+    the reference's acquisition time, of the recorded size). InputError when neither is
+    readable."""
+    data = reader.attachments.get(REFERENCE_ATTACHMENT)
+    if data is not None:
+        try:
+            return image_of_png(data), REFERENCE_ATTACHMENT
+        except FormatError as exc:
+            why = f"not readable ({exc})"
+    elif REFERENCE_ATTACHMENT in reader.damaged_attachments:
+        why = "damaged (it fails its CRC)"
+    elif "" in reader.damaged_attachments:
+        why = "damaged (its record is not readable)"
+    else:
+        why = "missing"
+    recorded = reader.reference_full_frame
+    taken_ns = int(start["epoch_offset_ns"]) + int(start["reference_timestamp_ns"])
+    size = (int(start["image_height"]), int(start["image_width"]))
+    if recorded is not None and recorded[0] == taken_ns:
+        try:
+            image = image_of(recorded[1])
+        except FormatError:
+            image = None
+        if image is not None and image.shape == size and str(image.dtype) == start["image_dtype"]:
+            return image, TOPIC_FULL
+    raise InputError(
+        f"{reader.path}: the reference frame cannot be recovered: the {REFERENCE_ATTACHMENT} "
+        f"attachment is {why}, and no {TOPIC_FULL} frame recorded with it was read"
+    )
 
 
 def _frame_of(setup: _Setup, recorded: RecordedSample, path: Path):
@@ -214,18 +270,22 @@ def replay_recording(
         _checked_override(override)
     reader = RecordingReader(path)
     try:
-        return _replay(reader, override, outputs, progress)
+        reader.read_all()
+        setup = _setup(reader, override)
+        return _replay(reader, setup, override, outputs, progress)
     finally:
         reader.close()
 
 
 def _replay(
     reader: RecordingReader,
+    setup: _Setup,
     override: Path | None,
     outputs: Sequence[RunOutput],
     progress: TextIO | None,
 ) -> RunOutcome:
-    setup: _Setup | None = None
+    for output in outputs:
+        output.begin(setup.facts)
     records: list[SampleRecord] = []
     latencies: list[float] = []
     tracking_time = 0.0
@@ -234,10 +294,6 @@ def _replay(
     unrecorded = 0
     samples = reader.samples()
     for recorded in samples:
-        if setup is None:
-            setup = _setup(reader, override)
-            for output in outputs:
-                output.begin(setup.facts)
         frame, machine, windows = _frame_of(setup, recorded, reader.path)
         if recorded.points.get("zeroed"):
             setup.measurer.zero()
@@ -270,33 +326,49 @@ def _replay(
             progress.flush()
     if progress is not None:
         progress.write("\n")
-    if setup is None:
-        _setup(reader, override)
     stop = reader.meta("run_stop") or {}
-    damage = reader.damage
+    damage = reader.describe_damage()
+    recorded_samples = _recorded_samples(stop)
+    if recorded_samples is None:
+        notes = [f"{len(records)} recorded samples measured before it"]
+    else:
+        notes = [f"{len(records)} of {recorded_samples} recorded samples measured"]
+    if setup.reference_source != REFERENCE_ATTACHMENT:
+        notes.append(f"the reference frame was read from {setup.reference_source}")
     result = LoopResult(
         exit_status=ExitStatus.DAMAGED if damage else ExitStatus.COMPLETED,
-        reason=damage.describe() if damage else "every recorded sample measured",
+        reason="; ".join([damage, *notes]) if damage else "every recorded sample measured",
         frames_processed=len(records),
-        frames_dropped=int(stop.get("frames_dropped", 0)),
+        frames_dropped=_count(stop.get("frames_dropped")) or 0,
         latencies_s=latencies,
         tracking_time_s=tracking_time,
     )
     for output in outputs:
         output.end(result)
-    recorded_facts = setup.facts.facts if setup is not None else {}
     extra = {
-        **{k: v for k, v in recorded_facts.items() if k != "test_id"},
+        **{k: v for k, v in setup.facts.facts.items() if k != "test_id"},
         "recording": str(reader.path),
         "override": str(override) if override is not None else None,
         "recorded_exit_status": stop.get("exit_status"),
         "recorded_reason": stop.get("reason"),
+        "recorded_samples": recorded_samples,
+        "reference_frame": setup.reference_source,
         "max_abs_diff_to_recorded": worst if records else None,
         "samples_differing": differing,
         "frames_reading_unrecorded_pixels": unrecorded,
-        "damage": damage.describe() if damage else None,
+        "damage": damage,
     }
     return RunOutcome(RunSummary.from_run(result, records), extra)
+
+
+def _count(text: str | None) -> int | None:
+    return int(text) if text is not None and text.isdigit() else None
+
+
+def _recorded_samples(stop: dict[str, str]) -> int | None:
+    """The samples the recording says it holds (`run_stop`), None when its end was not read."""
+    recorded = _count(stop.get("recording_samples"))
+    return recorded if recorded is not None else _count(stop.get("frames_processed"))
 
 
 def is_exact(outcome: RunOutcome) -> bool:
