@@ -68,6 +68,7 @@ class _FramingError(Exception):
 class _Connection:
     writer: asyncio.StreamWriter
     peer: str
+    name: str
     opened_s: float
     last_request_s: float | None = None
     dropped: bool = False
@@ -137,7 +138,12 @@ class ModbusTcpListener:
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         peer = writer.get_extra_info("peername")
-        connection = _Connection(writer, peer[0] if peer else "", opened_s=time.monotonic())
+        connection = _Connection(
+            writer,
+            peer=peer[0] if peer else "",
+            name=f"{peer[0]} port {peer[1]}" if peer else "an unknown peer",
+            opened_s=time.monotonic(),
+        )
         sock = writer.get_extra_info("socket")
         if sock is not None:
             with contextlib.suppress(OSError):
@@ -152,20 +158,20 @@ class ModbusTcpListener:
         except TimeoutError:
             self._log.note(
                 "idle",
-                f"modbus tcp: closed a connection from {connection.peer}: no complete request, "
+                f"modbus tcp: closed a connection from {connection.name}: no complete request, "
                 f"or no room for its answers, for {self.idle_timeout_s:g} s "
                 "([modbus] idle_timeout_s)",
             )
         except _FramingError as exc:
             self._log.note(
-                "framing", f"modbus tcp: closed a connection from {connection.peer}: {exc}"
+                "framing", f"modbus tcp: closed a connection from {connection.name}: {exc}"
             )
         except (ConnectionError, OSError) as exc:
             if connection.dropped:
                 return
             self._log.note(
                 "broken",
-                f"modbus tcp: a connection from {connection.peer} broke: "
+                f"modbus tcp: a connection from {connection.name} broke: "
                 f"{exc.strerror or type(exc).__name__}",
             )
         finally:
@@ -180,8 +186,8 @@ class ModbusTcpListener:
             victim.writer.transport.abort()
             self._log.note(
                 "dropped",
-                f"modbus tcp: dropped the oldest idle connection (from {victim.peer}) to let "
-                f"{connection.peer} in ([modbus] max_connections = {self.max_connections})",
+                f"modbus tcp: dropped the oldest idle connection (from {victim.name}) to let "
+                f"{connection.name} in ([modbus] max_connections = {self.max_connections})",
             )
         self._connections.add(connection)
 
