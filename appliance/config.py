@@ -196,8 +196,8 @@ class SimConfig:
     material: str = field(default="rubber", metadata={"choices": ("rubber", "metal")})
     seed: int = field(default=1, metadata=_range(0, 2**31 - 1))
     realtime: bool = False
-    sensor_width_px: int | None = field(default=None, metadata=_range(64, 16384))
-    sensor_height_px: int | None = field(default=None, metadata=_range(64, 16384))
+    sensor_width_px: int | None = field(default=None, metadata=_range(64, 8192))
+    sensor_height_px: int | None = field(default=None, metadata=_range(64, 8192))
     read_noise_grey: float = field(default=0.5, metadata=_range(0.0, 50.0))
     electrons_per_grey: float = field(default=40.0, metadata=_range(0.0, 1e6))
     camera_hang_after_s: float = field(default=0.0, metadata=_range(0.0, 1e6))

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from appliance.config import Config
+from appliance.errors import InputError
 from appliance.measure.frame_measurer import StrainSample
 from appliance.measure.gauges import Gauge
 from appliance.plan.optics import Optics
@@ -44,6 +45,11 @@ from appliance.sim.trigger import SimTriggerController
 from hal.camera.base import Frame
 from hal.clock import Pace, SimClock
 from hal.registry import camera_from_url, machine_from_url
+
+MAX_SENSOR_PIXELS = 8192 * 4096
+"""The simulated camera's largest sensor, px (33.6 MP: the largest machine-vision sensors)."""
+MAX_TEST_DURATION_S = 24 * 3600.0
+"""The longest simulated test: to its end strain (or the break) at the configured speed."""
 
 
 @dataclass(frozen=True)
@@ -151,6 +157,7 @@ class SimWorld:
         end_d = self.bar.crosshead_for_gauge_strain(
             -half_gauge, half_gauge, end_strain if end_strain else self.material.break_strain
         )
+        self.end_crosshead_mm = float(end_d)
         end = self.bar.deformation(end_d).deformation
         top = float(end.spatial_y(-half_gauge))
         bottom = half_gauge
@@ -188,7 +195,13 @@ class SimWorld:
         preset = PRESETS[config.sim.material]
         width = config.sim.sensor_width_px or preset.sensor_size[0]
         height = config.sim.sensor_height_px or preset.sensor_size[1]
-        return cls(
+        if width * height > MAX_SENSOR_PIXELS:
+            raise InputError(
+                f"[sim] sensor_width_px x sensor_height_px: {width} x {height} px is "
+                f"{width * height / 1e6:.1f} MP, more than the simulated camera's "
+                f"{MAX_SENSOR_PIXELS / 1e6:.1f} MP"
+            )
+        world = cls(
             preset,
             optics=optics,
             sensor_size=(width, height),
@@ -206,6 +219,25 @@ class SimWorld:
                 else ()
             ),
         )
+        duration_s = world.planned_duration_s
+        if duration_s > MAX_TEST_DURATION_S:
+            end = (
+                f"to [run] until_strain {config.run.until_strain:g}"
+                if config.run.until_strain
+                else f"to the break ({world.material.break_strain:g})"
+            )
+            raise InputError(
+                f"[run] speed_mm_min: at {world.speed_mm_min:g} mm/min the simulated test "
+                f"{end} would last {duration_s / 3600:.0f} h; the simulator runs tests of at "
+                f"most {MAX_TEST_DURATION_S / 3600:.0f} h (raise the speed or lower the end "
+                "strain)"
+            )
+        return world
+
+    @property
+    def planned_duration_s(self) -> float:
+        """Time from the start to the end strain (or the break) at the test speed, s."""
+        return self.end_crosshead_mm / (self.speed_mm_min / 60.0)
 
     @property
     def gauge_length_mm(self) -> float:
