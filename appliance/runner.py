@@ -55,7 +55,7 @@ from appliance.recording.writer import McapRecorder
 from appliance.rig import Rig, rig_for
 from appliance.run.disk_space import DiskReserve, check_free_space
 from appliance.run.drops import DropWarning
-from appliance.run.loop import DeviceEvent, LoopResult, MeasurementLoop
+from appliance.run.loop import DeviceEvent, LoopResult, MeasurementLoop, call_in_control
 from appliance.run.outputs import RunFacts, RunHooks, RunOutput
 from appliance.run.progress import ProgressLine
 from appliance.run.state import ExitStatus, RunStateMachine, Transition
@@ -67,6 +67,9 @@ if TYPE_CHECKING:
     from appliance.sim.world import GaugeTruth
 
 TRUTH_COLUMNS = ("truth_strain", "truth_elongation_mm", "strain_error")
+FETCH_TIMEOUT_S = 2.0
+"""Timeout of a frame fetch (two frame periods when longer): a camera that delivers nothing
+for that long is in an outage (`appliance.run.loop`)."""
 NO_HOOKS = RunHooks()
 
 
@@ -125,9 +128,10 @@ def run_test(
             directory that cannot be created, or a disk without the room a test needs.
         HardwareError: a device that cannot be opened or configured.
     """
-    rig = rig_for(config, simulate=simulate)
+    alive = [hooks.on_alive] if hooks.on_alive is not None else []
+    rig = call_in_control(lambda: rig_for(config, simulate=simulate), alive)
     plan = exposure_for(config, rig.optics, rig.speed_mm_min)
-    warm_up_kernels()
+    call_in_control(warm_up_kernels, alive)
     calibration = Calibration.from_optics(rig.optics.pixel_size_um, rig.optics.magnification)
     line = ProgressLine(progress) if progress is not None else None
     samples = _SampleLog()
@@ -147,7 +151,7 @@ def run_test(
     writer = None
     faults = _LateFaults()
     try:
-        in_force, triggers = rig.open(config, plan)
+        in_force, triggers = call_in_control(lambda: rig.open(config, plan), alive)
         pacer = _exposure_pacer(config, rig, in_force.exposure_us, recorder, line)
         if files.strain is not None:
             writer = _strain_file(
@@ -159,7 +163,7 @@ def run_test(
         if recorder is not None:
             recorder.close()
         _release(reserve)
-        rig.close()
+        call_in_control(rig.close, alive)
         raise
     outputs: list[RunOutput] = ([recorder] if recorder is not None else []) + list(hooks.outputs)
     known_before = _run_facts(config, rig, plan, calibration, in_force.exposure_us, triggers)
@@ -181,8 +185,10 @@ def run_test(
         state=RunStateMachine(on_transition=_transition_listener(recorder, hooks)),
         block_when_full=rig.block_when_full,
         start_speed_mm_min=rig.speed_mm_min if rig.commands else None,
+        fetch_timeout_s=max(FETCH_TIMEOUT_S, 2 * plan.frame_period_s),
         camera_outage_timeout_s=0.0 if simulate else config.camera.outage_timeout_s,
         device_listeners=_device_listeners(recorder, hooks, line),
+        liveness_listeners=alive,
         machine_listeners=[pacer.follow] if pacer is not None else [],
     )
     faults.loop = loop
@@ -203,8 +209,8 @@ def run_test(
             writer.close()
         if line is not None:
             line.close()
-        rig.close()
-    _end_outputs(outputs, result)
+        call_in_control(rig.close, alive)
+    call_in_control(lambda: _end_outputs(outputs, result), alive)
     _release(reserve)
     extra = {**known_before, **_run_counts(result, samples, reference, loop, rig, pacer)}
     if writer is not None:
@@ -217,7 +223,7 @@ def run_test(
         writer.path if writer is not None else None,
     )
     if files.summary is not None:
-        _write_summary(outcome, files.summary)
+        call_in_control(lambda: _write_summary(outcome, files.summary), alive)
     return outcome
 
 
@@ -454,6 +460,8 @@ def _run_counts(
         "controller_outages": result.controller_outages,
         "frames_without_controller": result.samples_without_controller,
     }
+    if result.hung_call:
+        counts["hung_call"] = result.hung_call
     statistics = rig.camera.statistics()
     if statistics:
         counts["camera_statistics"] = statistics

@@ -13,8 +13,13 @@ with `[service] start = "auto"`, the first one at once:
   tests are deleted while the directory holds more than `[service] max_state_mb`
   (`appliance.recording.retention`);
 * during a test the registers are written on the measurement thread with every frame, and
-  the watchdog is pinged from there too (`WATCHDOG=1`), so a measurement that stalls stops
-  the pings and systemd restarts the service; between tests the service's own wait loop pings;
+  the watchdog (`WATCHDOG=1`) is pinged while the measurement loop is in control: frames
+  coming, or a camera outage being waited through (data-valid cleared, the `camera lost`
+  bit set, the outage logged; the test faults when it outlasts `[camera] outage_timeout_s`);
+  between tests the service's own wait loop pings. A camera call that does not return (a
+  hung driver) ends the test as a fault with its outputs closed; the process cannot use
+  that camera again, so it stops pinging, refuses start commands and lets systemd's
+  watchdog restart it (without a watchdog it exits with status 1 for `Restart=on-failure`);
 * `STATUS=` says what it is doing (idle, the test running, how the last one ended);
 * stop and zero commands act on the running test; the gauge length set point applies to the
   next test;
@@ -49,6 +54,8 @@ from appliance.live.viewer import RerunViewer
 from appliance.measure.tracking import warm_up_kernels
 from appliance.recording.retention import enforce_retention
 from appliance.rig import check_devices
+from appliance.run.loop import DeviceEvent
+from appliance.run.outputs import RunHooks
 from appliance.run.state import ExitStatus, RunState, Transition
 from appliance.runner import OutputFiles, run_test
 from hal.errors import HardwareError
@@ -99,9 +106,11 @@ class Service:
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._start_requested = config.service.start == "auto"
+        self._testing = False
         self._stopping = False
         self._gauge_length_mm = config.gauge.length_mm
         self._test_id = ""
+        self._hung_call = ""
         self.tests_run = 0
         self.link = LiveLink(
             config,
@@ -118,7 +127,8 @@ class Service:
         self.log_stream.flush()
 
     def run(self) -> int:
-        """Serve until SIGTERM or SIGINT; returns the exit status (0 after a clean stop).
+        """Serve until SIGTERM or SIGINT; returns the exit status (0 after a clean stop; 1
+        when a device call hung and no watchdog will restart the service).
 
         Raises:
             InputError: a server or device that cannot start (names the key); nothing is left
@@ -131,15 +141,23 @@ class Service:
             self.notifier.ready(self._idle_status())
             self.log(f"ready: {self._idle_status()}")
             while True:
-                self.notifier.watchdog()
-                self.link.modbus.tick()
                 with self._lock:
                     stopping, start = self._stopping, self._start_requested
                     self._start_requested = False
+                    self._testing = start
+                    hung = self._hung_call
+                if not hung:
+                    self.notifier.watchdog()
+                elif self.notifier.watchdog_interval_s is None:
+                    self.log("exiting: a device call hung and no watchdog restarts the service")
+                    return 1
+                self.link.modbus.tick()
                 if stopping:
                     break
                 if start:
                     self._run_one_test()
+                    with self._lock:
+                        self._testing = False
                     continue
                 self._wake.wait(IDLE_TICK_S)
                 self._wake.clear()
@@ -200,7 +218,8 @@ class Service:
     def _on_start(self) -> bool:
         with self._lock:
             idle = self.link.state in (RunState.IDLE, RunState.ABORTED, RunState.FAULT)
-            if not idle or self._stopping or self._start_requested:
+            busy = self._testing or self._start_requested
+            if not idle or busy or self._stopping or self._hung_call:
                 return False
             self._start_requested = True
         self._wake.set()
@@ -249,10 +268,7 @@ class Service:
                 simulate=config.camera.url.startswith("sim://"),
                 files=files,
                 test_id=self._test_id,
-                hooks=dataclasses.replace(
-                    self.link.hooks(),
-                    on_warning=lambda text: self.log(f"{self._test_id}: warning: {text}"),
-                ),
+                hooks=self._hooks(),
             )
         except (InputError, HardwareError) as error:
             self._not_started(str(error))
@@ -269,7 +285,31 @@ class Service:
             f"{self._test_id}: {ended}; {summary.frames_processed} frames, "
             f"final strain {summary.final_strain}; recording {record}"
         )
+        if self.link.hung_call:
+            self._give_up(self.link.hung_call)
+            return
         self.notifier.status(f"last test {ended}; {self._idle_status()}")
+
+    def _hooks(self) -> RunHooks:
+        """The link's hooks, with the test's warnings and device events on the log."""
+        hooks = self.link.hooks()
+
+        def device_event(event: DeviceEvent) -> None:
+            if event.kind != "waiting":
+                self.log(f"{self._test_id}: {event.device} {event.kind}: {event.text}")
+
+        return dataclasses.replace(
+            hooks,
+            device_listeners=[*hooks.device_listeners, device_event],
+            on_warning=lambda text: self.log(f"{self._test_id}: warning: {text}"),
+        )
+
+    def _give_up(self, hung_call: str) -> None:
+        """A device call hung: no further test in this process, and no more watchdog pings."""
+        with self._lock:
+            self._hung_call = hung_call
+        self.log(f"a device call hangs ({hung_call}): no more tests; the service needs a restart")
+        self.notifier.status(f"needs a restart: a device call hangs ({hung_call})")
 
     def _not_started(self, why: str, ended: str = "not started") -> None:
         """A test that could not run (or failed without a result): logged, said in STATUS=

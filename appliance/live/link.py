@@ -8,10 +8,11 @@ outside, for `extensometer run` (one test) and `extensometer serve` (one test af
   commands (stop and zero act on the running test; start and the gauge length set point are
   the caller's to decide, through `on_start` and `on_gauge_length`);
 * the viewer (`appliance.live.viewer`), an output of every test;
-* the service manager's watchdog, pinged from the measurement thread with every frame, and
-  from the acquisition thread while the loop waits through a camera outage (the loop is
-  alive; a hung one stops the pings);
-* device events (`appliance.run.loop.DeviceEvent`): a camera outage clears data-valid.
+* the service manager's watchdog, pinged while the measurement loop is in control (its
+  liveness calls, `RunHooks.on_alive`: frames coming, or a camera outage being waited
+  through), never while one of its calls hangs; the Modbus heartbeat moves with it;
+* device events (`appliance.run.loop.DeviceEvent`): a camera outage clears data-valid; a
+  camera call that hung is kept in `hung_call` (the process cannot use the camera again).
 
 `hooks()` gives the `RunHooks` that connect a test run by `run_test` to the link.
 """
@@ -64,6 +65,7 @@ class LiveLink:
         self._loop: MeasurementLoop | None = None
         self._facts: RunFacts | None = None
         self.state = RunState.IDLE
+        self.hung_call = ""
         self.modbus = StrainRegisterServer(
             config.modbus,
             self._on_command,
@@ -92,7 +94,10 @@ class LiveLink:
         return True
 
     def hooks(self) -> RunHooks:
-        """The hooks of `run_test` connecting a test to the link."""
+        """The hooks of `run_test` connecting a test to the link.
+
+        `hung_call` is set once a test's camera call hung (a "hung" device event) and stays
+        set: the caller decides what a process with a hung call does."""
         outputs: list[RunOutput] = [_FactsTap(self)]
         if self.viewer is not None:
             outputs.append(self.viewer)
@@ -102,6 +107,7 @@ class LiveLink:
             on_transition=self._transition,
             on_loop=self._attach,
             device_listeners=[self._on_device_event],
+            on_alive=self._on_alive,
         )
 
     def _attach(self, loop: MeasurementLoop) -> None:
@@ -115,14 +121,17 @@ class LiveLink:
 
     def _on_sample(self, sample: StrainSample) -> None:
         self.modbus.publish(sample, self._facts)
-        if self.notifier is not None:
+
+    def _on_alive(self) -> None:
+        self.modbus.tick()
+        if self.notifier is not None and not self.hung_call:
             self.notifier.watchdog()
 
     def _on_device_event(self, event: DeviceEvent) -> None:
         if event.device == "camera":
             self.modbus.set_camera_lost(not event.available)
-        if self.notifier is not None:
-            self.notifier.watchdog()
+        if event.kind == "hung":
+            self.hung_call = event.text
 
     def _transition(self, transition: Transition) -> None:
         with self._lock:

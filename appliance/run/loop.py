@@ -24,14 +24,26 @@ Devices that go away (real hardware):
 
 * A camera outage (`fetch` raising `HardwareConnectError` or `HardwareTimeout`) is waited
   through for up to `camera_outage_timeout_s` while the backend reconnects: no samples are
-  measured, listeners hear `DeviceEvent`s (the Modbus registers clear data-valid, the
-  watchdog is still fed since the loop itself is alive), and the run faults only when the
-  outage outlasts the timeout. A camera that comes back with its frame counter or clock
+  measured, listeners hear `DeviceEvent`s (the Modbus registers clear data-valid), the loop
+  stays in control (its liveness listeners are still called), and the run faults only when
+  the outage outlasts the timeout. A camera that comes back with its frame counter or clock
   restarted is re-based: the device time continues from the last frame by the host time
   that passed (the original stamp stays in the frame's metadata as `device_timestamp_ns`).
 * A controller that cannot be read leaves the sample's `machine` None (its force and
   crosshead are missing, and flagged) while the strain is still measured; listeners hear
   when the controller is lost and when it is back.
+* A camera call that does not return (a `fetch` still blocked `hung_after_s` after it began:
+  its timeout plus as long again plus 1 s; a hung driver) is not an outage the loop can wait
+  through: the loop is no longer in control. Listeners hear a "hung" `DeviceEvent` (data-valid
+  cleared), the run ends as a FAULT ("fetch did not return within N s"), the blocked thread
+  is given up on so the outputs still close, and `LoopResult.hung_call` says so: only a new
+  process can recover the driver.
+
+Liveness: the thread that called `run` watches the others every `LIVENESS_PERIOD_S` and calls
+the liveness listeners (the service's watchdog, the Modbus heartbeat) while the loop is in
+control: no camera call blocked beyond `hung_after_s` and no frame in measurement for longer
+than `TRACKING_BOUND_S`. A loop stuck in a call stops those calls, so the service manager's
+watchdog restarts the service; a camera that answers without frames does not.
 
 The run follows `appliance.run.state`: ARMED while the reference is taken, RUNNING while
 measuring, STOPPING while the queues drain, then IDLE; ABORTED on an operator interrupt and
@@ -47,7 +59,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 from appliance.errors import InputError
 from appliance.measure.frame_measurer import (
@@ -66,6 +78,12 @@ from hal.machine.base import MachineState, TestingMachine
 OUTAGE_RETRY_S = 0.05
 """Pause between fetch attempts while the camera is away (its backend paces reconnects)."""
 
+LIVENESS_PERIOD_S = 0.1
+"""How often the loop's threads are watched and the liveness listeners called."""
+
+TRACKING_BOUND_S = 10.0
+"""Longest measurement of one frame that still counts as progress (a frame takes ms)."""
+
 
 @dataclass(frozen=True)
 class DeviceEvent:
@@ -74,8 +92,9 @@ class DeviceEvent:
     Attributes:
         device: "camera" or "machine" (its controller).
         url: the device's URL.
-        kind: "lost" (first failure), "waiting" (each further failed attempt, camera only)
-            or "restored".
+        kind: "lost" (first failure), "waiting" (each further failed attempt, camera only),
+            "restored", or "hung" (a call that did not return: the run ends as a fault and
+            the device cannot be used again in this process).
         text: one line: the error, or how long the device was away.
     """
 
@@ -108,6 +127,8 @@ class LoopResult:
         camera_outage_s: total time without the camera, s (wall time).
         controller_outages: times the controller could not be read after it had been.
         samples_without_controller: frames acquired without the controller's state.
+        hung_call: the device call that did not return and was given up on, one line; ""
+            when none (a process with a hung call needs a restart to use the device again).
     """
 
     exit_status: ExitStatus = ExitStatus.COMPLETED
@@ -122,10 +143,48 @@ class LoopResult:
     camera_outage_s: float = 0.0
     controller_outages: int = 0
     samples_without_controller: int = 0
+    hung_call: str = ""
 
 
 Sink = Callable[[StrainSample], None]
 _END = object()
+_T = TypeVar("_T")
+
+DEVICE_CALL_BOUND_S = 30.0
+"""Longest a device call outside the measurement (open, disarm, close) counts as progress."""
+
+
+def call_in_control(
+    call: Callable[[], _T],
+    liveness_listeners: Sequence[Callable[[], None]],
+    bound_s: float = DEVICE_CALL_BOUND_S,
+) -> _T:
+    """`call()` on a thread of its own, the liveness listeners called every
+    `LIVENESS_PERIOD_S` meanwhile for up to `bound_s` (a device call that returns within its
+    own timeouts is the loop in control; one that blocks longer stops the listeners, so the
+    service manager's watchdog sees it). Returns what `call` returns, raises what it raises."""
+    if not liveness_listeners:
+        return call()
+    box: list[Any] = []
+
+    def run() -> None:
+        try:
+            box.append((True, call()))
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
+            box.append((False, exc))
+
+    worker = threading.Thread(target=run, name="device-call", daemon=True)
+    started = time.monotonic()
+    worker.start()
+    while worker.is_alive():
+        worker.join(LIVENESS_PERIOD_S)
+        if worker.is_alive() and time.monotonic() - started <= bound_s:
+            for listener in liveness_listeners:
+                listener()
+    returned, value = box[0]
+    if not returned:
+        raise value
+    return value
 
 
 class MeasurementLoop:
@@ -148,8 +207,11 @@ class MeasurementLoop:
         break_detection: how a break is recognised.
         camera_outage_timeout_s: how long a camera outage is waited through before the run
             faults; 0 = the first connection loss or timeout is a fault.
-        device_listeners: called with every `DeviceEvent` (on the acquisition thread; fast,
-            non-blocking work only).
+        device_listeners: called with every `DeviceEvent` (on the acquisition thread; a
+            "hung" event on the thread that called `run`; fast, non-blocking work only).
+        liveness_listeners: called every `LIVENESS_PERIOD_S` on the thread that called `run`
+            while the loop is in control (the reference frame included), never while a call
+            hangs (fast, non-blocking work only: the service's watchdog).
         machine_listeners: called with the time of every frame after the reference (s since
             the reference, as `StrainSample.time_s`) and the controller reading taken with it
             (None when there is none), on the acquisition thread before the frame is queued
@@ -173,6 +235,7 @@ class MeasurementLoop:
         break_detection: BreakDetection | None = None,
         camera_outage_timeout_s: float = 0.0,
         device_listeners: Sequence[Callable[[DeviceEvent], None]] = (),
+        liveness_listeners: Sequence[Callable[[], None]] = (),
         machine_listeners: Sequence[Callable[[float, MachineState | None], None]] = (),
         wall: Callable[[], float] = time.perf_counter,
     ) -> None:
@@ -188,6 +251,8 @@ class MeasurementLoop:
         self.break_detection = break_detection or BreakDetection()
         self.camera_outage_timeout_s = camera_outage_timeout_s
         self.device_listeners = list(device_listeners)
+        self.liveness_listeners = list(liveness_listeners)
+        self.hung_after_s = 2 * fetch_timeout_s + 1.0
         self.machine_listeners = list(machine_listeners)
         self._wall = wall
         self._outage_since: float | None = None
@@ -204,6 +269,8 @@ class MeasurementLoop:
         self._errors: list[tuple[str, BaseException]] = []
         self._publishing_failed = False
         self._lock = threading.Lock()
+        self._fetch_since: float | None = None
+        self._tracking_since: float | None = None
 
     def request_stop(self, reason: str = "operator stop") -> None:
         """Stop the run before its criterion; it ends STOPPED with `reason` (thread-safe)."""
@@ -228,20 +295,24 @@ class MeasurementLoop:
                 speckle that cannot be tracked): the run goes back to IDLE, nothing measured.
         """
         self.state.handle(RunEvent.ARM, "reference")
-        self.camera.arm()
+        call_in_control(self.camera.arm, self.liveness_listeners)
         try:
-            reference = self.camera.fetch(self.fetch_timeout_s)
+            reference = self._reference_frame()
             self._reference_time_ns = reference.timestamp_ns
             self._last_frame_id = reference.frame_id
             self._last_timestamp_ns = reference.timestamp_ns
             self._last_delivered_s = time.monotonic()
-            tracker, gauges = self.setup(reference)
+            tracker, gauges = call_in_control(
+                lambda: self.setup(reference), self.liveness_listeners
+            )
         except InputError as exc:
             self.state.handle(RunEvent.DISARM, f"refused: {exc}")
             self.camera.disarm()
             raise
         except Exception as exc:  # noqa: BLE001 - a failed start is a FAULT with its reason
             return self._fail_before_start(exc)
+        if self._stop.is_set():
+            return self._fail_before_start(None)
         self.state.handle(RunEvent.START, "measuring")
         if self.start_speed_mm_min is not None and self.machine is not None:
             self.machine.start(self.start_speed_mm_min)
@@ -264,47 +335,97 @@ class MeasurementLoop:
         self._shut_down()
         return self._result
 
+    def _reference_frame(self) -> Frame:
+        """The first frame, fetched on a thread of its own so that a fetch that does not
+        return is given up on (`hung_after_s`) and the liveness listeners hear the loop while
+        it waits."""
+        box: list[Frame | BaseException] = []
+
+        def fetch() -> None:
+            try:
+                box.append(self.camera.fetch(self.fetch_timeout_s))
+            except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
+                box.append(exc)
+
+        self._fetch_since = time.monotonic()
+        fetcher = threading.Thread(target=fetch, name="reference-fetch", daemon=True)
+        fetcher.start()
+        while fetcher.is_alive():
+            fetcher.join(LIVENESS_PERIOD_S)
+            hung = self._hung_fetch() if fetcher.is_alive() else None
+            if hung is not None:
+                raise self._hang(hung)
+            self._alive()
+        self._fetch_since = None
+        outcome = box[0]
+        if isinstance(outcome, BaseException):
+            raise outcome
+        return outcome
+
     def _wait(self, threads: list[threading.Thread]) -> None:
-        """Wait for the threads; after a stop, give up on an acquisition thread whose fetch
-        does not return (a hung driver), so the test still ends and its outputs close."""
-        acquisition = threads[0]
-        grace_s = 2 * self.fetch_timeout_s + 1.0
-        stopped_at: float | None = None
+        """Wait for the threads, calling the liveness listeners while the loop is in control;
+        give up on an acquisition thread whose fetch does not return (a hung driver), so the
+        test still ends and its outputs close."""
         while any(t.is_alive() for t in threads):
             for thread in threads:
-                thread.join(timeout=0.1)
-            if not self._stop.is_set() or not acquisition.is_alive():
+                thread.join(timeout=LIVENESS_PERIOD_S / len(threads))
+            hung = self._hung_fetch() if threads[0].is_alive() else None
+            if hung is None:
+                if not self._tracking_stuck():
+                    self._alive()
                 continue
-            stopped_at = stopped_at if stopped_at is not None else time.monotonic()
-            if time.monotonic() - stopped_at > grace_s:
-                self._errors.append(
-                    (
-                        "acquisition",
-                        HardwareTimeout(
-                            f"{self.camera.url}: fetch did not return within {grace_s:g} s "
-                            "of the stop"
-                        ),
-                    )
-                )
-                self._put(self._frames, _END, force=True)
-                for thread in threads[1:]:
-                    thread.join()
-                return
+            self._errors.insert(0, ("acquisition", self._hang(hung)))
+            self._stop.set()
+            self._put(self._frames, _END, force=True)
+            for thread in threads[1:]:
+                thread.join()
+            return
 
-    def _fail_before_start(self, exc: BaseException) -> LoopResult:
+    def _alive(self) -> None:
+        for listener in self.liveness_listeners:
+            listener()
+
+    def _hung_fetch(self) -> str | None:
+        """How long the camera's current fetch has been blocked, when beyond `hung_after_s`."""
+        since = self._fetch_since
+        if since is None:
+            return None
+        blocked_s = time.monotonic() - since
+        if blocked_s <= self.hung_after_s:
+            return None
+        return f"{self.camera.url}: fetch did not return within {self.hung_after_s:g} s"
+
+    def _tracking_stuck(self) -> bool:
+        since = self._tracking_since
+        return since is not None and time.monotonic() - since > TRACKING_BOUND_S
+
+    def _hang(self, text: str) -> HardwareTimeout:
+        """A camera call that does not return: said to the listeners, kept in the result."""
+        self._result.hung_call = text
+        self._emit(DeviceEvent("camera", self.camera.url, "hung", text))
+        return HardwareTimeout(text)
+
+    def _fail_before_start(self, exc: BaseException | None) -> LoopResult:
+        """The run ends before its first frame is measured: the reference frame failed
+        (`exc`), or a stop came while it was taken (None; the machine is not started)."""
         self._result.exit_status = ExitStatus.FAULT
-        where = "" if isinstance(exc, HardwareError) else f"{type(exc).__name__}: "
-        self._result.reason = f"reference frame: {where}{exc}"
+        if exc is None:
+            self._result.reason = (
+                f"no valid sample was measured (the test ended: {self._result.reason})"
+            )
+        else:
+            where = "" if isinstance(exc, HardwareError) else f"{type(exc).__name__}: "
+            self._result.reason = f"reference frame: {where}{exc}"
         self.state.handle(RunEvent.FAULT, self._result.reason)
-        self.camera.disarm()
+        call_in_control(self.camera.disarm, self.liveness_listeners)
         self._result.final_state = self.state.state
         return self._result
 
     def _shut_down(self) -> None:
-        self.camera.disarm()
+        call_in_control(self.camera.disarm, self.liveness_listeners)
         if self.start_speed_mm_min is not None and self.machine is not None:
             try:
-                self.machine.stop()
+                call_in_control(self.machine.stop, self.liveness_listeners)
             except HardwareError as exc:
                 if not self._errors:
                     self._errors.append(("machine", exc))
@@ -371,11 +492,14 @@ class MeasurementLoop:
     def _acquire(self) -> None:
         try:
             while not self._stop.is_set():
+                self._fetch_since = time.monotonic()
                 try:
                     frame = self.camera.fetch(self.fetch_timeout_s)
                 except (HardwareConnectError, HardwareTimeout) as exc:
+                    self._fetch_since = None
                     self._camera_away(exc)
                     continue
+                self._fetch_since = None
                 delivered = self._wall()
                 if self._outage_since is not None:
                     frame = self._camera_back(frame)
@@ -485,10 +609,12 @@ class MeasurementLoop:
                     continue
                 frame, machine, delivered = item
                 started = self._wall()
+                self._tracking_since = time.monotonic()
                 if self._zero_requested.is_set():
                     self._zero_requested.clear()
                     measurer.zero()
                 sample = measurer.measure(frame, machine, delivered, self._result.frames_dropped)
+                self._tracking_since = None
                 for sink in self.immediate_sinks:
                     sink(sample)
                 self._result.tracking_time_s += self._wall() - started

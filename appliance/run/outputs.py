@@ -99,6 +99,9 @@ class RunHooks:
             back), on the acquisition thread.
         on_warning: called with a warning about the running test, one line (frames dropped:
             `appliance.run.drops`), on the publishing thread; the recording logs it as well.
+        on_alive: called periodically while the measurement loop is in control, never
+            while one of its calls hangs (`MeasurementLoop`'s liveness listeners: the
+            service's watchdog); fast, non-blocking work only.
     """
 
     outputs: Sequence[RunOutput] = ()
@@ -107,3 +110,4 @@ class RunHooks:
     on_loop: Callable[[MeasurementLoop], None] | None = None
     device_listeners: Sequence[Callable[[DeviceEvent], None]] = ()
     on_warning: Callable[[str], None] | None = None
+    on_alive: Callable[[], None] | None = None

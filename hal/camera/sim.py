@@ -11,10 +11,10 @@ the signal; Gaussian read noise and Poisson shot noise; quantisation to Mono8 or
 with clipping; the sensor region; frame ids and device timestamps (start of exposure, ns, from
 the simulation clock).
 
-Fault injection: `hang_after_s` makes the camera stop answering from that simulation time
-on, as a hung driver does: `fetch` blocks, ignoring its timeout, until the camera is disarmed
-or closed, then raises `HardwareConnectError`. It exists to prove that the service's watchdog
-catches a measurement that stalls.
+Fault injection: `hang_after_s` makes the camera stop answering that long (simulation time)
+after it was first armed, as a hung driver does: `fetch` blocks, ignoring its timeout, until
+the camera is disarmed or closed, then raises `HardwareConnectError`. It exists to prove that
+the service's watchdog catches a measurement that stalls.
 
 In real time, the internal trigger keeps the camera's own time: when the host (or the
 renderer) falls behind by more than a frame period, the exposures it missed are lost and the
@@ -69,8 +69,8 @@ class SimCamera:
         read_noise: standard deviation of the read noise, grey levels on the 8-bit scale.
         electrons_per_grey: conversion gain for shot noise at unit gain (8-bit scale); 0 =
             no shot noise.
-        hang_after_s: simulation time from which the camera hangs (see the module
-            docstring); None = never.
+        hang_after_s: simulation time after the first `arm` from which the camera hangs
+            (see the module docstring); None = never.
         trigger_line: what drives the trigger input in EXTERNAL mode besides
             `external_edge` calls; None = only those.
     """
@@ -103,6 +103,7 @@ class SimCamera:
         self._delivered = 0
         self._frame_id = 0
         self._hang_after_s = hang_after_s
+        self._first_armed_s: float | None = None
         self._released = threading.Event()
         self._trigger_line = trigger_line
         self._last_edge_s = -math.inf
@@ -155,6 +156,8 @@ class SimCamera:
         self._delivered = 0
         self._next_internal_s = self._clock.now_s()
         self._last_edge_s = -math.inf
+        if self._first_armed_s is None:
+            self._first_armed_s = self._next_internal_s
 
     def disarm(self) -> None:
         self._armed = False
@@ -185,7 +188,8 @@ class SimCamera:
         if self._trigger.frames and self._delivered >= self._trigger.frames:
             raise HardwareTimeout(f"{self.url}: all {self._trigger.frames} frames delivered")
         start = self._next_start(timeout_s)
-        if self._hang_after_s is not None and start >= self._hang_after_s:
+        hang_from_s = (self._first_armed_s or 0.0) + (self._hang_after_s or 0.0)
+        if self._hang_after_s is not None and start >= hang_from_s:
             self._released.wait()
             raise HardwareConnectError(f"{self.url}: the camera stopped answering")
         exposure_s = self._settings.exposure_us * 1e-6
