@@ -338,16 +338,16 @@ class MeasurementLoop:
     def _reference_frame(self) -> Frame:
         """The first frame, fetched on a thread of its own so that a fetch that does not
         return is given up on (`hung_after_s`) and the liveness listeners hear the loop while
-        it waits."""
+        it waits. A camera that delivers no frame is an outage here too, waited through for
+        up to `camera_outage_timeout_s` unless the run is stopped meanwhile."""
         box: list[Frame | BaseException] = []
 
         def fetch() -> None:
             try:
-                box.append(self.camera.fetch(self.fetch_timeout_s))
+                box.append(self._first_frame())
             except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
                 box.append(exc)
 
-        self._fetch_since = time.monotonic()
         fetcher = threading.Thread(target=fetch, name="reference-fetch", daemon=True)
         fetcher.start()
         while fetcher.is_alive():
@@ -356,11 +356,31 @@ class MeasurementLoop:
             if hung is not None:
                 raise self._hang(hung)
             self._alive()
-        self._fetch_since = None
         outcome = box[0]
         if isinstance(outcome, BaseException):
             raise outcome
         return outcome
+
+    def _first_frame(self) -> Frame:
+        while True:
+            self._fetch_since = time.monotonic()
+            try:
+                frame = self.camera.fetch(self.fetch_timeout_s)
+            except (HardwareConnectError, HardwareTimeout) as exc:
+                self._fetch_since = None
+                if self._stop.is_set():
+                    raise
+                self._camera_away(exc)
+                continue
+            self._fetch_since = None
+            if self._outage_since is not None:
+                away_s = time.monotonic() - self._outage_since
+                self._result.camera_outage_s += away_s
+                self._outage_since = None
+                self._emit(
+                    DeviceEvent("camera", self.camera.url, "restored", f"back after {away_s:.1f} s")
+                )
+            return frame
 
     def _wait(self, threads: list[threading.Thread]) -> None:
         """Wait for the threads, calling the liveness listeners while the loop is in control;
@@ -409,10 +429,9 @@ class MeasurementLoop:
         """The run ends before its first frame is measured: the reference frame failed
         (`exc`), or a stop came while it was taken (None; the machine is not started)."""
         self._result.exit_status = ExitStatus.FAULT
-        if exc is None:
-            self._result.reason = (
-                f"no valid sample was measured (the test ended: {self._result.reason})"
-            )
+        if exc is None or self._finished.is_set():
+            ended = self._result.reason + (f"; reference frame: {exc}" if exc else "")
+            self._result.reason = f"no valid sample was measured (the test ended: {ended})"
         else:
             where = "" if isinstance(exc, HardwareError) else f"{type(exc).__name__}: "
             self._result.reason = f"reference frame: {where}{exc}"
