@@ -188,7 +188,8 @@ class Service:
         warm_up_kernels()
 
     def _check_watchdog(self) -> None:
-        """Refuse a frame period the watchdog cannot wait through (pings come with frames)."""
+        """Refuse a frame period of half the watchdog interval or more: a camera outage is
+        noticed two frame periods after the last frame, within the interval."""
         interval = self.notifier.watchdog_interval_s
         if interval is None:
             return
