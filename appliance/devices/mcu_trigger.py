@@ -10,7 +10,9 @@ run in real time (`[sim] realtime = true`), since the firmware's ticks follow wa
 `McuTriggerLine` is that camera input: `next_edge_s` waits for the next TRIGGER (the camera's
 fetch timeout bounds the wait) and keeps every event it consumed (`events`) so a test can
 match frames to triggers by sequence. A TRIGGER the link reports without a clock fit yet is
-skipped (its time is unknown) and counted.
+skipped (its time is unknown) and counted. A BOOT during the test (the microcontroller reset:
+its trigger plan and clock are gone, no further pulse comes) raises `HardwareFault` naming
+the reset's cause (`restarted`), so the test ends as a fault that says why the frames stopped.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from collections.abc import Callable
 
 from appliance.errors import InputError
 from appliance.plan.trigger_plan import TriggerPlan
-from firmware_bridge.link import FirmwareError, McuLink, TriggerEvent
+from firmware_bridge.link import BootEvent, FirmwareError, McuLink, TriggerEvent
 from firmware_bridge.messages import TriggerSource
 from hal.errors import HardwareFault
 
@@ -51,6 +53,7 @@ class McuTriggerLine:
         self.events: list[TriggerEvent] = []
         self.unstamped = 0
         self._released = False
+        self._armed_ns: int | None = None
 
     def start(self, plan: TriggerPlan, *, start_tick: int = 0) -> None:
         """Send the plan to the firmware and arm it; the first pulse at `start_tick` (0 = as
@@ -59,6 +62,7 @@ class McuTriggerLine:
             source, period, divisor = TriggerSource.ENCODER, 0, plan.encoder_divisor
         else:
             source, period, divisor = TriggerSource.PERIOD, plan.period_ticks, 1
+        self._armed_ns = time.monotonic_ns()
         self.link.configure(source, plan.pulse_width_ticks, period, divisor, start_tick=start_tick)
         self.link.arm()
 
@@ -101,6 +105,8 @@ class McuTriggerLine:
             if remaining <= 0:
                 return None
             event = self.link.next_event(remaining)
+            if self.reset_under_test(event):
+                raise self.restarted(event)
             if not isinstance(event, TriggerEvent):
                 continue
             if event.host_time_ns is None:
@@ -110,6 +116,22 @@ class McuTriggerLine:
             edge = self.sim_s_of_host_ns(event.host_time_ns)
             if edge > after_s:
                 return edge
+
+    def reset_under_test(self, event: object) -> bool:
+        """Whether `event` is a BOOT received after the plan was sent (`start`): the
+        microcontroller reset under the test (the BOOT of its power-on is not)."""
+        armed_ns = self._armed_ns
+        return (
+            isinstance(event, BootEvent) and armed_ns is not None and event.received_ns > armed_ns
+        )
+
+    def restarted(self, boot: BootEvent) -> HardwareFault:
+        """The error of a test whose microcontroller reset under it."""
+        cause = getattr(boot.cause, "name", boot.cause)
+        return HardwareFault(
+            f"[trigger] url: {self.link.url}: the trigger microcontroller restarted (reset "
+            f"cause {cause}); its trigger plan is gone and no further trigger comes"
+        )
 
 
 def connect_trigger_line(

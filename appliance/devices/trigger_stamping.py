@@ -244,11 +244,15 @@ class TriggerStampedCamera:
             if remaining <= 0:
                 return None
             event = self.line.link.next_event(remaining)
+            if self.line.reset_under_test(event):
+                raise self.line.restarted(event)
             if isinstance(event, TriggerEvent):
                 self._events[event.trigger_seq] = event
         return self._events[seq]
 
     def _collect(self) -> None:
         for event in self.line.link.drain_events():
+            if self.line.reset_under_test(event):
+                raise self.line.restarted(event)
             if isinstance(event, TriggerEvent):
                 self._events[event.trigger_seq] = event

@@ -33,7 +33,9 @@ import pytest
 
 from appliance.run.strain_file import COLUMNS
 from appliance.sim.controller_server import ControllerServer
+from firmware_bridge.simulator import SimulatedMcu
 from tests.system.aravis_peers import SpecimenCamera, needs_gige, specimen_camera
+from tests.system.firmware_peers import firmware_binaries
 from tests.system.machine_controller_peers import SimulatedController
 from tests.system.modbus_peers import MBPOLL, free_tcp_port, mbpoll_read_tcp, mbpoll_tcp
 from tests.system.notify_harness import NotifyHarness
@@ -490,3 +492,53 @@ def test_a_camera_call_that_never_returns_faults_the_test_and_the_watchdog_resta
     assert summary["exit_status"] == "fault" and "fetch did not return within" in summary["reason"]
     assert summary["hung_call"] and summary["frames_processed"] > 0
     _every_sample_kept(summary, rows, seen)
+
+
+def test_a_trigger_microcontroller_reset_mid_test_ends_it_as_a_fault_that_says_so(tmp_path):
+    """The trigger firmware (its test build, under simavr) hangs on its hang pin and its
+    watchdog resets it mid-test: no further trigger comes, so `run` ends the test as a fault
+    naming the reset instead of waiting for frames; every sample measured is kept. (`run`:
+    the simulated camera on the real firmware needs `--sim`, which `serve` takes from its
+    configuration's URLs alike; the run is the shorter harness.)"""
+    binaries = firmware_binaries()
+    port = free_tcp_port()
+    with SimulatedMcu(binaries["test_elf"], binaries["harness"], tmp_path / "mcu") as mcu:
+        config = tmp_path / "run.toml"
+        config.write_text(
+            f'[trigger]\nsource = "period"\nurl = "{mcu.port}"\n'
+            "[sim]\nrealtime = true\nsensor_width_px = 512\nsensor_height_px = 1024\n"
+            f'[modbus]\ntcp = "127.0.0.1:{port}"\n'
+        )
+        out = tmp_path / "out"
+        process = subprocess.Popen(
+            [EXTENSOMETER, "run", "--sim", "--config", str(config), "--until-strain", "5"]
+            + ["--json", "--out", str(out)],
+            stdout=subprocess.PIPE,
+            stderr=(tmp_path / "run.log").open("w"),
+            text=True,
+            preexec_fn=lambda: os.nice(10),
+        )
+        try:
+            bench = Bench(tmp_path, None, 0)  # type: ignore[arg-type]
+            bench.port = port
+            deadline = time.monotonic() + 120
+            while mbpoll_tcp(port, "-1", "-r", "10", "-c", "1", "-t", "4").returncode != 0:
+                assert process.poll() is None and time.monotonic() < deadline, "no Modbus server"
+                time.sleep(0.2)
+            try:
+                seen = [bench.measuring(5)["frame"]]
+            except AssertionError:
+                raise AssertionError((tmp_path / "run.log").read_text()) from None
+            mcu.drive_pin("C0", 0)
+            stdout, _ = process.communicate(timeout=60)
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.communicate()
+        resets = mcu.resets()
+    assert process.returncode == 1, (tmp_path / "run.log").read_text()
+    assert len(resets) == 1
+    summary = json.loads(stdout)
+    assert summary["exit_status"] == "fault", summary["reason"]
+    assert "trigger microcontroller restarted (reset cause WATCHDOG)" in summary["reason"]
+    _every_sample_kept(summary, _rows(out / "strain.csv"), seen)
