@@ -25,10 +25,12 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from appliance.run.strain_file import COLUMNS
@@ -37,7 +39,13 @@ from firmware_bridge.simulator import SimulatedMcu
 from tests.system.aravis_peers import SpecimenCamera, needs_gige, specimen_camera
 from tests.system.firmware_peers import firmware_binaries
 from tests.system.machine_controller_peers import SimulatedController
-from tests.system.modbus_peers import MBPOLL, free_tcp_port, mbpoll_read_tcp, mbpoll_tcp
+from tests.system.modbus_peers import (
+    MBPOLL,
+    free_tcp_port,
+    mbpoll_read_tcp,
+    mbpoll_tcp,
+    pty_pair,
+)
 from tests.system.notify_harness import NotifyHarness
 
 EXTENSOMETER = str(Path(sys.executable).with_name("extensometer"))
@@ -542,3 +550,50 @@ def test_a_trigger_microcontroller_reset_mid_test_ends_it_as_a_fault_that_says_s
     assert summary["exit_status"] == "fault", summary["reason"]
     assert "trigger microcontroller restarted (reset cause WATCHDOG)" in summary["reason"]
     _every_sample_kept(summary, _rows(out / "strain.csv"), seen)
+
+
+def test_garbage_on_the_trigger_serial_line_is_refused_before_the_test_in_one_line(tmp_path):
+    """A pty peer that answers every byte with random bytes where the trigger microcontroller
+    should be: the handshake never completes, and `run` refuses in one line naming
+    `[trigger] url` (exit 2) within the handshake's timeout, nothing measured. (Garbage
+    injected into a live link needs a second writer on simavr's pty, which it does not
+    offer; the link's own tests feed its parser corrupted packets.)"""
+    with pty_pair(tmp_path) as (peer_end, appliance_end):
+        stop = threading.Event()
+
+        def babble() -> None:
+            random = np.random.default_rng(3)
+            with open(peer_end, "r+b", buffering=0) as line:
+                while not stop.is_set():
+                    line.write(random.integers(0, 256, 64, dtype=np.uint8).tobytes())
+                    stop.wait(0.01)
+
+        peer = threading.Thread(target=babble, daemon=True)
+        peer.start()
+        config = tmp_path / "run.toml"
+        config.write_text(
+            f'[trigger]\nsource = "period"\nurl = "{appliance_end}"\n'
+            "[sim]\nrealtime = true\nsensor_width_px = 512\nsensor_height_px = 1024\n"
+        )
+        try:
+            done = subprocess.run(
+                [
+                    EXTENSOMETER,
+                    "run",
+                    "--sim",
+                    "--config",
+                    str(config),
+                    "--out",
+                    str(tmp_path / "out"),
+                ],
+                capture_output=True,
+                text=True,
+                timeout=120,
+            )
+        finally:
+            stop.set()
+            peer.join(timeout=10)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.startswith(f"extensometer: error: [trigger] url: {appliance_end}: ")
+    assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr
+    assert not (tmp_path / "out" / "strain.csv").exists()
