@@ -65,8 +65,8 @@ class CameraConfig:
     frame_rate_hz: float | None = field(default=None, metadata=_range(0.1, 10000.0))
     min_frame_rate_hz: float = field(default=20.0, metadata=_range(0.1, 10000.0))
     blur_budget_px: float = field(default=1.0, metadata=_range(0.0, 100.0))
-    min_exposure_us: float = field(default=100.0, metadata=_range(1.0, 1e7))
-    max_exposure_us: float = field(default=20000.0, metadata=_range(1.0, 1e7))
+    min_exposure_us: float = field(default=100.0, metadata=_range(1.0, 1e6))
+    max_exposure_us: float = field(default=20000.0, metadata=_range(1.0, 1e6))
 
     def region(self) -> Region | None:
         """The sensor region of `region_*_px`; None = the full sensor."""

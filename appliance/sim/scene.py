@@ -67,6 +67,10 @@ _ROUNDING = 1e-9
 """Slack on the motion in sample steps, so that an exact multiple of the step is not rounded up."""
 
 
+TEXTURE_OVERSAMPLE = 2
+"""Texels per pixel (each way) of the specimen's texture, by default."""
+
+
 @dataclass(frozen=True)
 class SpeckleCoat:
     """The speckle pattern painted on the specimen, in material coordinates.
@@ -221,7 +225,7 @@ class SpecimenScene:
         centre_mm: tuple[float, float] = (0.0, 0.0),
         coat: SpeckleCoat | None = None,
         background: float = 20.0,
-        oversample: int = 2,
+        oversample: int = TEXTURE_OVERSAMPLE,
         max_time_samples: int = 64,
         max_sample_step_px: float = 0.25,
     ) -> None:

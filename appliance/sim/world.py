@@ -39,7 +39,7 @@ from appliance.sim.bar import BarModel
 from appliance.sim.crosshead import Crosshead
 from appliance.sim.machine import MachineWithSpecimen
 from appliance.sim.materials import ElasticPlastic, MooneyRivlin
-from appliance.sim.scene import SpecimenScene, SpeckleCoat
+from appliance.sim.scene import TEXTURE_OVERSAMPLE, SpecimenScene, SpeckleCoat
 from appliance.sim.specimen import Specimen
 from appliance.sim.trigger import SimTriggerController
 from hal.camera.base import Frame
@@ -48,6 +48,10 @@ from hal.registry import camera_from_url, machine_from_url
 
 MAX_SENSOR_PIXELS = 8192 * 4096
 """The simulated camera's largest sensor, px (33.6 MP: the largest machine-vision sensors)."""
+MAX_TEXTURE_PIXELS = 100e6
+"""The largest specimen texture the simulator renders (px; the metal preset's is 5.2e6)."""
+MIN_SPECKLE_RADIUS_PX = 0.5
+"""The smallest speckle the simulator paints, in pixels of the image (the presets' are 2 px)."""
 MAX_TEST_DURATION_S = 24 * 3600.0
 """The longest simulated test: to its end strain (or the break) at the configured speed."""
 
@@ -200,6 +204,27 @@ class SimWorld:
                 f"[sim] sensor_width_px x sensor_height_px: {width} x {height} px is "
                 f"{width * height / 1e6:.1f} MP, more than the simulated camera's "
                 f"{MAX_SENSOR_PIXELS / 1e6:.1f} MP"
+            )
+        specimen = preset.specimen()
+        speckle_px = preset.speckle_radius_mm / optics.scale_mm_per_px
+        if speckle_px < MIN_SPECKLE_RADIUS_PX:
+            raise InputError(
+                f"[optics]: at {optics.scale_mm_per_px:.3g} mm/px the simulated speckle "
+                f"(radius {preset.speckle_radius_mm:g} mm) is {speckle_px:.2g} px; the simulator "
+                f"paints speckles of at least {MIN_SPECKLE_RADIUS_PX:g} px (a finer scale: a "
+                "longer focal length, a shorter object distance or smaller pixels)"
+            )
+        texel_mm = optics.scale_mm_per_px / TEXTURE_OVERSAMPLE
+        texture_pixels = (specimen.overall_length_mm / texel_mm) * (
+            specimen.end_width_mm / texel_mm
+        )
+        if texture_pixels > MAX_TEXTURE_PIXELS:
+            raise InputError(
+                f"[optics]: at {optics.scale_mm_per_px:.3g} mm/px the simulated specimen "
+                f"({specimen.overall_length_mm:g} x {specimen.end_width_mm:g} mm) needs a "
+                f"texture of {texture_pixels / 1e6:.3g} MP; the simulator renders at most "
+                f"{MAX_TEXTURE_PIXELS / 1e6:.0f} MP (a coarser scale: a shorter focal length, "
+                "a longer object distance or larger pixels)"
             )
         world = cls(
             preset,

@@ -45,3 +45,17 @@ def test_a_slow_test_with_a_near_end_strain_is_accepted_and_its_duration_known()
     assert standard.planned_duration_s == pytest.approx(
         standard.end_crosshead_mm / (standard.speed_mm_min / 60.0)
     )
+
+
+def test_optics_that_magnify_the_specimen_beyond_what_the_simulator_renders_are_refused():
+    with pytest.raises(InputError, match=r"^\[optics\]: at 0.001 mm/px the simulated specimen"):
+        _world(
+            {"optics": {"focal_length_mm": 1.0, "object_distance_mm": 2.0, "pixel_size_um": 1.0}}
+        )
+
+
+def test_optics_too_coarse_to_resolve_the_speckle_are_refused():
+    with pytest.raises(InputError, match=r"^\[optics\]: at 9.6e\+03 mm/px the simulated speckle"):
+        _world(
+            {"optics": {"focal_length_mm": 1.0, "object_distance_mm": 1e5, "pixel_size_um": 96.0}}
+        )
