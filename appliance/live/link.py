@@ -57,7 +57,6 @@ class LiveLink:
         on_transition: Callable[[Transition], None] | None = None,
     ) -> None:
         self.notifier = notifier
-        self._watchdog = notifier is not None and notifier.watchdog_interval_s is not None
         self.viewer = viewer
         self._on_start = on_start
         self._on_gauge_length = on_gauge_length
@@ -98,10 +97,7 @@ class LiveLink:
         """The hooks of `run_test` connecting a test to the link.
 
         `hung_call` is set once a test's camera call hung (a "hung" device event) and stays
-        set: the caller decides what a process with a hung call does. The liveness hook
-        (`on_alive`: the watchdog ping and the Modbus heartbeat) is there only when the
-        service manager watches the process, so without a watchdog the device calls around
-        the measurement run on the caller's thread."""
+        set: the caller decides what a process with a hung call does."""
         outputs: list[RunOutput] = [_FactsTap(self)]
         if self.viewer is not None:
             outputs.append(self.viewer)
@@ -111,7 +107,7 @@ class LiveLink:
             on_transition=self._transition,
             on_loop=self._attach,
             device_listeners=[self._on_device_event],
-            on_alive=self._on_alive if self._watchdog else None,
+            on_alive=self._on_alive,
         )
 
     def _attach(self, loop: MeasurementLoop) -> None:

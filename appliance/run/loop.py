@@ -159,32 +159,29 @@ def call_in_control(
     liveness_listeners: Sequence[Callable[[], None]],
     bound_s: float = DEVICE_CALL_BOUND_S,
 ) -> _T:
-    """`call()` on a thread of its own, the liveness listeners called every
-    `LIVENESS_PERIOD_S` meanwhile for up to `bound_s` (a device call that returns within its
-    own timeouts is the loop in control; one that blocks longer stops the listeners, so the
-    service manager's watchdog sees it). Returns what `call` returns, raises what it raises."""
+    """`call()` on the caller's thread, while a thread of its own calls the liveness
+    listeners every `LIVENESS_PERIOD_S` for up to `bound_s` (a device call that returns within
+    its own timeouts is the loop in control; one that blocks longer stops the listeners, so
+    the service manager's watchdog sees it). The call itself stays on the caller's thread:
+    device libraries are used from the thread that opened them (Aravis' GLib objects, the
+    trigger link's clock synchronisation). Returns what `call` returns, raises what it raises."""
     if not liveness_listeners:
         return call()
-    box: list[Any] = []
+    finished = threading.Event()
 
-    def run() -> None:
-        try:
-            box.append((True, call()))
-        except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
-            box.append((False, exc))
-
-    worker = threading.Thread(target=run, name="device-call", daemon=True)
-    started = time.monotonic()
-    worker.start()
-    while worker.is_alive():
-        worker.join(LIVENESS_PERIOD_S)
-        if worker.is_alive() and time.monotonic() - started <= bound_s:
+    def keep_alive() -> None:
+        deadline = time.monotonic() + bound_s
+        while not finished.wait(LIVENESS_PERIOD_S) and time.monotonic() <= deadline:
             for listener in liveness_listeners:
                 listener()
-    returned, value = box[0]
-    if not returned:
-        raise value
-    return value
+
+    pinger = threading.Thread(target=keep_alive, name="device-call-liveness", daemon=True)
+    pinger.start()
+    try:
+        return call()
+    finally:
+        finished.set()
+        pinger.join()
 
 
 class MeasurementLoop:

@@ -49,6 +49,7 @@ from tests.system.modbus_peers import (
 from tests.system.notify_harness import NotifyHarness
 
 EXTENSOMETER = str(Path(sys.executable).with_name("extensometer"))
+ROOT = Path(__file__).resolve().parents[2]
 
 pytestmark = [
     needs_gige,
@@ -66,6 +67,10 @@ EXIT_STOPPED, EXIT_FAULT = 3, 5
 
 WATCHDOG_USEC = 6_000_000
 """The watchdog interval the service runs under (its unit says 10 s; stricter here)."""
+
+RESTART_S = 5.0
+"""systemd's wait before it restarts a failed service (the unit's RestartSec): long enough for
+the camera to give up the control a killed process held (GigE Vision heartbeat timeout)."""
 
 OPTICS = "[optics]\nfocal_length_mm = 25.0\nobject_distance_mm = 250.0\npixel_size_um = 5.0\n"
 
@@ -381,12 +386,14 @@ def test_sigkill_mid_test_keeps_every_row_written_and_a_restart_serves_again(tmp
         (killed,) = sorted(bench.state.glob("test-*.strain.csv"))
         rows = _rows(killed)
         assert seen in {int(row["frame_id"]) for row in rows}
+        unit = (ROOT / "systemd" / "extensometer.service").read_text(encoding="utf-8")
+        assert f"RestartSec={RESTART_S:g}s" in unit
+        time.sleep(RESTART_S)
         restarted_at = time.monotonic()
         with bench.serve(config) as service:
             service.wait_for("READY=1", timeout=180)
             ready_s = time.monotonic() - restarted_at
-            bench.command(1)
-            bench.measuring(5)
+            bench.start_measuring()
             assert service.terminate(timeout=60) == 0
     ((_, again_rows),) = bench.tests()
     assert len(again_rows) >= 5
