@@ -53,7 +53,7 @@ def host_facts() -> dict[str, Any]:
 def command_line() -> str:
     """The command that is running, as a user would type it."""
     program = Path(sys.argv[0]).name
-    if program == "extensometer":
+    if program in ("extensometer", "__main__.py"):
         return shlex.join(["extensometer", *sys.argv[1:]])
     return shlex.join([program, *sys.argv[1:]])
 

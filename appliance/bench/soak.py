@@ -215,7 +215,7 @@ def _figures(
     threads_after = [t["threads"] for t in after]
     rss_slope = slopes["rss_mb"]
     return {
-        "configuration": str(config),
+        "configuration": _shown(config),
         "viewer": viewer,
         "elapsed_s": elapsed_s,
         "tests": len(tests),
@@ -236,6 +236,15 @@ def _figures(
         ),
         "service_log_tail": list(log_tail),
     }
+
+
+def _shown(path: Path) -> str:
+    """`path` relative to the project (as the shipped configuration is named), else whole."""
+    project = SHIPPED_CONFIGURATION.parents[1]
+    try:
+        return str(path.resolve().relative_to(project))
+    except ValueError:
+        return str(path)
 
 
 def format_table(figures: Mapping[str, Any]) -> str:

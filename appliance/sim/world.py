@@ -114,8 +114,8 @@ class SimWorld:
         pace: FAST or REAL_TIME.
         seed: seed of the speckle coat and of the camera noise.
         read_noise, electrons_per_grey: camera noise (see `hal.camera.sim.SimCamera`).
-        camera_hang_after_s: simulation time from which the camera hangs (fault injection,
-            see `hal.camera.sim.SimCamera`); None = never.
+        camera_hang_after_s: how long after it is first armed the camera hangs (simulation
+            time; fault injection, see `hal.camera.sim.SimCamera`); None = never.
         encoder_counts_per_mm: the crosshead encoder's resolution.
         speed_changes: the simulated controller's speed program after the start: (seconds
             after the start, mm/min), in increasing time.
