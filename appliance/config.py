@@ -277,7 +277,9 @@ class RerunConfig:
     (`rerun+http://HOST:PORT/proxy`), `save` = an .rrd file (`{test}` in the path becomes the
     test id, one file per test; without it each test replaces the file). Images go at
     `image_rate_hz`, scaled by `image_scale`; the viewer has a queue of `queue_size` samples
-    and drops (and counts) what does not fit, so it never slows the measurement.
+    and drops (and counts) what does not fit, so it never slows the measurement. The server
+    keeps at most `history_mb` of what it relayed, for viewers that connect late (the oldest
+    goes first; each test's facts stay): the service's memory for the viewer is bounded by it.
     """
 
     serve: str = field(default="", metadata={"address": True})
@@ -286,6 +288,7 @@ class RerunConfig:
     image_rate_hz: float = field(default=2.0, metadata=_range(0.0, 1000.0))
     image_scale: float = field(default=0.5, metadata=_range(0.05, 1.0))
     queue_size: int = field(default=64, metadata=_range(1, 100000))
+    history_mb: float = field(default=256.0, metadata=_range(1.0, 65536.0))
 
 
 @dataclass(frozen=True)

@@ -55,6 +55,15 @@ def test_urls_of_a_server():
     assert proxy_url("::1", 9876) == "rerun+http://[::1]:9876/proxy"
 
 
+@pytest.mark.parametrize("history_mb", [1.0, 1.5, 65536.0])
+def test_a_viewer_s_server_takes_its_history_bound_from_the_configuration(history_mb):
+    viewer = RerunViewer(RerunConfig(serve=f"127.0.0.1:{_free_port()}", history_mb=history_mb))
+    viewer.start()
+    assert viewer.service is not None and not viewer.service.closed
+    assert viewer.service.server_memory_limit == f"{history_mb:g}MB"
+    viewer.close()
+
+
 def test_a_service_listens_on_loopback_until_closed():
     port = _free_port()
     with RerunService(f"127.0.0.1:{port}") as service:

@@ -115,7 +115,11 @@ class RerunViewer:
             InputError: the address is malformed or not available, naming `[rerun] serve`.
         """
         if self._owns_service and self._service is None:
-            self._service = RerunService(self.config.serve, application_id=self.application_id)
+            self._service = RerunService(
+                self.config.serve,
+                application_id=self.application_id,
+                server_memory_limit=f"{self.config.history_mb:g}MB",
+            )
 
     def close(self) -> None:
         """End a test still open and close the gRPC server this viewer opened (idempotent)."""

@@ -70,6 +70,7 @@ class RerunService:
         url: what a remote viewer opens (`rerun <url>`).
         local_url: what this process's recordings connect to (loopback when listening on
             every interface).
+        server_memory_limit: the history kept for late viewers, as given.
     """
 
     def __init__(
@@ -91,6 +92,7 @@ class RerunService:
         self.url = proxy_url(host, port)
         local = ("::1" if address.version == 6 else "127.0.0.1") if address.is_unspecified else host
         self.local_url = proxy_url(local, port)
+        self.server_memory_limit = server_memory_limit
         self._stream = rr.RecordingStream(
             application_id, recording_id=f"{application_id}-service", send_properties=False
         )
