@@ -395,8 +395,9 @@ def test_sigkill_mid_test_keeps_every_row_written_and_a_restart_serves_again(tmp
             ready_s = time.monotonic() - restarted_at
             bench.start_measuring()
             assert service.terminate(timeout=60) == 0
-    ((_, again_rows),) = bench.tests()
-    assert len(again_rows) >= 5
+    *settling, (measured, again_rows) = bench.tests()
+    assert measured["exit_status"] == "stopped" and len(again_rows) >= 5
+    assert all(summary["exit_status"] == "fault" for summary, _ in settling)
     info = subprocess.run(
         [EXTENSOMETER, "info", str(killed.with_suffix("").with_suffix(".mcap"))],
         capture_output=True,
