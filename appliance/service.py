@@ -61,6 +61,8 @@ from appliance.runner import OutputFiles, run_test
 from hal.errors import HardwareError
 
 IDLE_TICK_S = 0.1
+_ENDED = (RunState.IDLE, RunState.ABORTED, RunState.FAULT)
+"""Run states a test ends in: a start command is taken once the test is in one of them."""
 
 
 def state_directory(config: Config) -> Path:
@@ -107,6 +109,7 @@ class Service:
         self._wake = threading.Event()
         self._start_requested = config.service.start == "auto"
         self._testing = False
+        self._test_ended = False
         self._stopping = False
         self._gauge_length_mm = config.gauge.length_mm
         self._test_id = ""
@@ -144,8 +147,10 @@ class Service:
                 with self._lock:
                     stopping, start = self._stopping, self._start_requested
                     self._start_requested = False
-                    self._testing = start
                     hung = self._hung_call
+                    start = start and not hung
+                    self._testing = start
+                    self._test_ended = False
                 if not hung:
                     self.notifier.watchdog()
                 elif self.notifier.watchdog_interval_s is None:
@@ -219,7 +224,7 @@ class Service:
     def _on_start(self) -> bool:
         with self._lock:
             idle = self.link.state in (RunState.IDLE, RunState.ABORTED, RunState.FAULT)
-            busy = self._testing or self._start_requested
+            busy = (self._testing and not self._test_ended) or self._start_requested
             if not idle or busy or self._stopping or self._hung_call:
                 return False
             self._start_requested = True
@@ -235,6 +240,8 @@ class Service:
         if transition.target is RunState.RUNNING:
             self.notifier.status(f"running test {self._test_id}")
         with self._lock:
+            if transition.target in _ENDED:
+                self._test_ended = True
             stopping = self._stopping
         if stopping and transition.target is RunState.RUNNING:
             self.link.request_stop("service stopping")

@@ -50,6 +50,7 @@ _RUN_STATE_IDLE = 0
 _RUN_STATE_RUNNING = 2
 _COMMAND_START = 1
 _COMMAND_STOP = 2
+_COMMAND_ACCEPTED = 1
 
 
 class SoakError(RuntimeError):
@@ -91,6 +92,7 @@ class _Controller:
         self._command = BY_NAME["command"].address
         self._run_state = BY_NAME["run_state"].address
         self._exit_status = BY_NAME["exit_status"].address
+        self._command_result = BY_NAME["command_result"].address
 
     def connect(self, timeout_s: float, service: subprocess.Popen) -> None:
         deadline = time.monotonic() + timeout_s
@@ -104,10 +106,21 @@ class _Controller:
     def close(self) -> None:
         self._client.close()
 
-    def command(self, code: int) -> None:
-        reply = self._client.write_register(self._command, code)
-        if reply.isError():
-            raise SoakError(f"command {code} refused: {reply}")
+    def command(self, code: int, timeout_s: float) -> None:
+        """Write a command until the appliance takes it (`command_result` accepted)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            reply = self._client.write_register(self._command, code)
+            if reply.isError():
+                raise SoakError(f"command {code}: exception {reply}")
+            result = self._client.read_holding_registers(self._command_result, count=1)
+            if result.isError():
+                raise SoakError(f"reading command_result: {result}")
+            if result.registers[0] == _COMMAND_ACCEPTED:
+                return
+            if time.monotonic() > deadline:
+                raise SoakError(f"command {code} refused for {timeout_s:g} s")
+            time.sleep(_POLL_S)
 
     def state(self) -> tuple[int, int]:
         reply = self._client.read_holding_registers(self._run_state, count=4)
@@ -175,12 +188,12 @@ def measure_soak(
             soak_start = time.monotonic()
             while time.monotonic() - soak_start < duration_s:
                 test_start = time.monotonic()
-                controller.command(_COMMAND_START)
+                controller.command(_COMMAND_START, START_TIMEOUT_S)
                 controller.wait(
                     lambda s, _e: s == _RUN_STATE_RUNNING, START_TIMEOUT_S, "test running"
                 )
                 time.sleep(test_s)
-                controller.command(_COMMAND_STOP)
+                controller.command(_COMMAND_STOP, END_TIMEOUT_S)
                 _, exit_status = controller.wait(
                     lambda s, e: s == _RUN_STATE_IDLE and e != 0, END_TIMEOUT_S, "test ended"
                 )

@@ -215,6 +215,49 @@ def test_a_stop_command_and_sigterm_end_a_test_as_stopped_with_their_reason(tmp_
         assert summary["frames_processed"] > 0
 
 
+def test_a_start_command_as_soon_as_a_test_has_ended_is_taken(tmp_path):
+    """The controller may start the next test the moment `run_state` reads idle after a test:
+    the start is accepted (`command_result` 1) while the service still closes the last test's
+    files, and the next test runs."""
+    from pymodbus.client import ModbusTcpClient
+
+    port = free_tcp_port()
+    config = _config(
+        tmp_path, port, service=f'state_directory = "{tmp_path / "state"}"', run="until_strain = 0"
+    )
+    with NotifyHarness([EXTENSOMETER, "serve", "--config", str(config)]) as service:
+        service.wait_for("READY=1", timeout=180)
+        client = ModbusTcpClient("127.0.0.1", port=port, timeout=5)
+        assert client.connect()
+        try:
+            client.write_register(100, 1)
+            service.wait_for(lambda n: n.value("STATUS", "").startswith("running test"), 60)
+            client.write_register(100, 2)
+            deadline = time.monotonic() + 60
+            while True:
+                words = client.read_holding_registers(27, count=4).registers
+                if words[0] in (0, 4, 5) and words[3] != 0:
+                    break
+                assert time.monotonic() < deadline, words
+            client.write_register(100, 1)
+            assert client.read_holding_registers(102, count=1).registers == [1]
+        finally:
+            client.close()
+        service.wait_for(
+            lambda n: (
+                n.value("STATUS", "").startswith("running test")
+                and n.value("STATUS", "") != f"running test {_first_test(tmp_path)}"
+            ),
+            60,
+        )
+        assert service.terminate(timeout=60) == 0
+    assert len(sorted((tmp_path / "state").glob("test-*.summary.json"))) == 2
+
+
+def _first_test(tmp_path: Path) -> str:
+    return sorted((tmp_path / "state").glob("test-*.mcap"))[0].name.removesuffix(".mcap")
+
+
 @pytest.mark.parametrize(
     ("camera", "watchdog_usec", "message"),
     [
