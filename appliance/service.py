@@ -62,7 +62,8 @@ from hal.errors import HardwareError
 
 IDLE_TICK_S = 0.1
 _ENDED = (RunState.IDLE, RunState.ABORTED, RunState.FAULT)
-"""Run states a test ends in: a start command is taken once the test is in one of them."""
+"""Run states a test ends in (and the service waits in): a start command is taken in one of
+them, once the test under way, if any, has reached it."""
 
 
 def state_directory(config: Config) -> Path:
@@ -223,7 +224,7 @@ class Service:
 
     def _on_start(self) -> bool:
         with self._lock:
-            idle = self.link.state in (RunState.IDLE, RunState.ABORTED, RunState.FAULT)
+            idle = self.link.state in _ENDED
             busy = (self._testing and not self._test_ended) or self._start_requested
             if not idle or busy or self._stopping or self._hung_call:
                 return False
