@@ -141,6 +141,7 @@ class OpticsConfig:
     focal_length_mm: float | None = field(default=None, metadata=_range(1.0, 1000.0))
     object_distance_mm: float | None = field(default=None, metadata=_range(1.0, 1e5))
     pixel_size_um: float | None = field(default=None, metadata=_range(0.5, 100.0))
+    calibration: str = ""
 
 
 @dataclass(frozen=True)
@@ -204,6 +205,21 @@ class SimConfig:
     controller: str = field(default="direct", metadata={"choices": ("direct", "modbus-tcp")})
     speed_change_after_s: float = field(default=0.0, metadata=_range(0.0, 1e6))
     speed_change_mm_min: float = field(default=0.0, metadata=_range(0.0, 10000.0))
+    bench: str = field(default="ideal", metadata={"choices": ("ideal", "typical", "harsh")})
+    lens: str | None = field(default=None, metadata={"choices": ("telecentric", "entocentric")})
+    lens_k1: float | None = field(default=None, metadata=_range(-1.0, 1.0))
+    lens_k2: float | None = field(default=None, metadata=_range(-1.0, 1.0))
+    lens_p1: float | None = field(default=None, metadata=_range(-0.05, 0.05))
+    lens_p2: float | None = field(default=None, metadata=_range(-0.05, 0.05))
+    camera_tilt_deg: float | None = field(default=None, metadata=_range(0.0, 10.0))
+    thinning_out_of_plane: bool | None = None
+    slack_out_of_plane_mm: float | None = field(default=None, metadata=_range(-5.0, 5.0))
+    flicker_percent: float | None = field(default=None, metadata=_range(0.0, 20.0))
+    mains_frequency_hz: float = field(default=50.0, metadata=_range(45.0, 65.0))
+    vibration_px_rms: float | None = field(default=None, metadata=_range(0.0, 5.0))
+    vibration_frequency_hz: float | None = field(default=None, metadata=_range(0.1, 1000.0))
+    warm_up_drift_percent: float | None = field(default=None, metadata=_range(-1.0, 1.0))
+    warm_up_time_constant_s: float | None = field(default=None, metadata=_range(1.0, 1e5))
 
 
 @dataclass(frozen=True)
