@@ -11,7 +11,10 @@
    inside the tracker's search; while the test runs, exposure and trigger spacing follow
    the speed the machine reports (`appliance.plan.pacing`);
 3. marks: placed on the reference frame, centred on the specimen, at the configured gauge
-   length; each axial mark a short line of points;
+   length; each axial mark a short line of points; lengths are measured in mm on the specimen
+   plane through `[optics] calibration` when it names a file (read once, before any device
+   opens: a file that is bad or made for another sensor size or region refuses the test),
+   else by the nominal scale of the optics (`appliance.run.object_plane`);
 4. the loop (`appliance.run.loop`) until the strain limit, the break, or a stop;
 5. outputs (`OutputFiles`): the strain file (every sample, with the truth when simulated),
    the summary, the MCAP recording (`appliance.recording.writer`) and the hooks' outputs (a
@@ -56,6 +59,12 @@ from appliance.rig import Rig, rig_for
 from appliance.run.disk_space import DiskReserve, check_free_space
 from appliance.run.drops import DropWarning
 from appliance.run.loop import DeviceEvent, LoopResult, MeasurementLoop, call_in_control
+from appliance.run.object_plane import (
+    calibration_facts,
+    check_image_size,
+    configured_calibration,
+    out_of_plane_bound,
+)
 from appliance.run.outputs import RunFacts, RunHooks, RunOutput
 from appliance.run.progress import ProgressLine
 from appliance.run.state import ExitStatus, RunStateMachine, Transition
@@ -130,9 +139,9 @@ def run_test(
     """
     alive = [hooks.on_alive] if hooks.on_alive is not None else []
     rig = call_in_control(lambda: rig_for(config, simulate=simulate), alive)
+    calibration = configured_calibration(config, rig.optics, _image_size(config, rig))
     plan = exposure_for(config, rig.optics, rig.speed_mm_min)
     call_in_control(warm_up_kernels, alive)
-    calibration = Calibration.from_optics(rig.optics.pixel_size_um, rig.optics.magnification)
     line = ProgressLine(progress) if progress is not None else None
     samples = _SampleLog()
     reserve = _prepare_directories(files, config)
@@ -225,6 +234,19 @@ def run_test(
     if files.summary is not None:
         call_in_control(lambda: _write_summary(outcome, files.summary), alive)
     return outcome
+
+
+def _image_size(config: Config, rig: Rig) -> tuple[int, int] | None:
+    """(width, height) px of the images the test will take, when known before the camera
+    opens: the configured sensor region's, or the simulated camera's sensor; None for a real
+    camera's full sensor (checked on the reference frame)."""
+    region = config.camera.region()
+    if region is not None:
+        return (region.width, region.height)
+    if rig.world is not None:
+        width, height = rig.world.camera.sensor_size
+        return (int(width), int(height))
+    return None
 
 
 def _prepare_directories(files: OutputFiles, config: Config) -> DiskReserve | None:
@@ -348,16 +370,20 @@ class _Reference:
         """The loop's set-up: marks on the reference frame, tracker and gauges on them."""
         config, rig = self.config, self.rig
         g = config.gauge
-        points, layout = place_marks(
-            rig.centre_px(reference),
-            rig.gauge_length_mm,
-            self.calibration,
-            axis_deg=g.axis_deg,
-            mark_width_px=g.mark_spacing_px * (g.points_per_mark - 1),
-            points_per_mark=g.points_per_mark,
-            transverse_width_mm=g.transverse_width_mm or None,
-            along_axis=True,
-        )
+        check_image_size(self.calibration, reference.image.shape[1], reference.image.shape[0])
+        try:
+            points, layout = place_marks(
+                rig.centre_px(reference),
+                rig.gauge_length_mm,
+                self.calibration,
+                axis_deg=g.axis_deg,
+                mark_width_px=g.mark_spacing_px * (g.points_per_mark - 1),
+                points_per_mark=g.points_per_mark,
+                transverse_width_mm=g.transverse_width_mm or None,
+                along_axis=True,
+            )
+        except ValueError as exc:
+            raise InputError(f"[gauge] length_mm: {exc}") from None
         outside = marks_outside(points, reference.image.shape, config.tracking.min_subset_px)
         if outside is not None:
             raise InputError(f"[gauge] length_mm: {outside}: shorten the gauge or move its centre")
@@ -427,6 +453,16 @@ def _run_facts(
         "speed_mm_min": rig.speed_mm_min,
         "gauge_length_mm": rig.gauge_length_mm,
         "scale_mm_per_px": calibration.scale_mm_per_px,
+        **calibration_facts(calibration),
+        **(
+            {"nominal_scale_mm_per_px": rig.optics.scale_mm_per_px}
+            if calibration.in_object_plane
+            else {}
+        ),
+        "object_distance_mm": rig.optics.object_distance_mm,
+        **out_of_plane_bound(
+            calibration, rig.optics.object_distance_mm, rig.gauge_length_mm
+        ).facts(),
         "exposure_us": exposure_us,
         "frame_rate_hz": 1.0 / plan.frame_period_s,
         "blur_px_at_crosshead_speed": plan.blur_px,

@@ -18,6 +18,7 @@ from appliance.cli import arguments
 from appliance.cli.printing import print_summary
 from appliance.config import Config, Override
 from appliance.errors import InputError
+from appliance.run.object_plane import resolved_calibration_path
 from hal.errors import HardwareError
 
 RUN_OPTIONS = (
@@ -106,7 +107,8 @@ def run_configuration(args: argparse.Namespace) -> Config:
     if args.realtime or args.fast:
         option = "--realtime" if args.realtime else "--fast"
         overrides.append(Override(option, "sim", "realtime", bool(args.realtime)))
-    return arguments.configuration(args.config, args, overrides)
+    config = arguments.configuration(args.config, args, overrides)
+    return resolved_calibration_path(config, args.config)
 
 
 def viewer_of(config: Config):
@@ -159,7 +161,7 @@ def serve_tests(args: argparse.Namespace) -> int:
     from appliance.live.sd_notify import ServiceNotifier
     from appliance.service import Service
 
-    config = arguments.configuration(args.config, args)
+    config = resolved_calibration_path(arguments.configuration(args.config, args), args.config)
     with ServiceNotifier() as notifier:
         return Service(
             config, record_path=args.record, notifier=notifier, viewer=viewer_of(config)

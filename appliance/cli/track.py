@@ -3,6 +3,13 @@
 Each target is measured against the reference (integer search, then IC-GN), the result of one
 image seeding the next. Results go to stdout as a table or JSON, or to a file; the images
 measured before a bad one are still written.
+
+With `--calibration FILE` (written by `extensometer calibrate`, for the reference's image
+size) each point of the JSON also gets its position on the specimen plane, `X_mm`, `Y_mm`
+(where it is in the image, mapped through the calibration: lens distortion removed, its ray
+intersected with the calibrated plane), and its displacement there since the reference,
+`dX_mm`, `dY_mm`; all four null where the point was not found. The document then names the
+calibration (`calibration`: file, checksum, scale).
 """
 
 from __future__ import annotations
@@ -28,6 +35,8 @@ from appliance.dic.correlation import (
 from appliance.dic.icgn import ICGNResult
 from appliance.errors import InputError
 from appliance.measure.tracking import TrackerSettings
+from appliance.optics.calibration_file import CameraCalibration, load_calibration
+from appliance.optics.camera_model import PlaneProjection
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -81,6 +90,12 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     track.add_argument(
         "--lpq-window", type=arguments.window_size, default=None, help="LPQ window M, px (7)"
     )
+    track.add_argument(
+        "--calibration",
+        metavar="FILE",
+        help="camera calibration (extensometer calibrate): add object-plane positions and "
+        "displacements in mm (X_mm, Y_mm, dX_mm, dY_mm) to the JSON",
+    )
     output = track.add_mutually_exclusive_group()
     output.add_argument("--json", action="store_true", help="print JSON on stdout")
     output.add_argument("--out", metavar="FILE", help="write JSON to FILE")
@@ -92,6 +107,7 @@ def track_images(args: argparse.Namespace) -> int:
     points = read_points(args.points)
     reference = read_grey(args.reference)
     height, width = reference.shape
+    calibration = _calibration(args.calibration, (width, height))
     outside = subsets_outside(points.xy, reference.shape, args.subset)
     if outside.any():
         k = int(np.argmax(outside))
@@ -113,6 +129,7 @@ def track_images(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise InputError(f"track: --lpq-window: {exc}") from None
     correlator.prepare(reference.astype(np.float64), points.xy)
+    plane = _Plane(calibration.projection(), points.xy) if calibration is not None else None
     guess = np.zeros((len(points.xy), 2)) if points.guess is None else points.guess.copy()
     measured: list[dict] = []
     try:
@@ -127,21 +144,70 @@ def track_images(args: argparse.Namespace) -> int:
             converged = result.status == PointStatus.CONVERGED
             guess[converged, 0] = result.u[converged]
             guess[converged, 1] = result.v[converged]
-            measured.append(_image_record(path, points.xy, result))
+            measured.append(_image_record(path, points.xy, result, plane))
     except InputError as error:
-        _emit(args, measured)
+        _emit(args, measured, calibration)
         raise error
-    _emit(args, measured)
+    _emit(args, measured, calibration)
     return 0
+
+
+def _calibration(path: str | None, size: tuple[int, int]) -> CameraCalibration | None:
+    """The `--calibration` file, checked for the reference's size; None without one."""
+    if path is None:
+        return None
+    try:
+        return load_calibration(Path(path), sensor_size=size)
+    except InputError as exc:
+        raise InputError(f"track: --calibration: {exc}") from None
+
+
+class _Plane:
+    """Object-plane positions of the points of interest, and their displacements there."""
+
+    def __init__(self, projection: PlaneProjection, xy: np.ndarray) -> None:
+        self.projection = projection
+        self.reference_mm = self._plane_mm(xy)
+
+    def _plane_mm(self, xy: np.ndarray) -> np.ndarray:
+        """(n, 2) plane positions, mm; NaN where a position cannot be mapped."""
+        plane = np.full(xy.shape, math.nan)
+        for k, point in enumerate(xy):
+            if np.all(np.isfinite(point)):
+                try:
+                    plane[k] = self.projection.to_plane_mm(point[None, :])[0]
+                except ValueError:
+                    continue
+        return plane
+
+    def fields(self, xy: np.ndarray, found: np.ndarray) -> list[dict[str, float | None]]:
+        """`X_mm`, `Y_mm`, `dX_mm`, `dY_mm` of each point at `xy` (null where not found)."""
+        plane = self._plane_mm(np.where(found[:, None], xy, math.nan))
+        moved = plane - self.reference_mm
+        return [
+            {
+                "X_mm": _finite_or_none(plane[k, 0]),
+                "Y_mm": _finite_or_none(plane[k, 1]),
+                "dX_mm": _finite_or_none(moved[k, 0]),
+                "dY_mm": _finite_or_none(moved[k, 1]),
+            }
+            for k in range(len(xy))
+        ]
 
 
 def _finite_or_none(value: float) -> float | None:
     return float(value) if math.isfinite(value) else None
 
 
-def _image_record(path: str, xy: np.ndarray, result: ICGNResult) -> dict:
+def _image_record(
+    path: str, xy: np.ndarray, result: ICGNResult, plane: _Plane | None = None
+) -> dict:
     """One image's points: a point that was not found (any status but converged) has no
-    displacement or gradient (null), only its status saying why, its ZNCC and iterations."""
+    displacement or gradient (null), only its status saying why, its ZNCC and iterations;
+    with a calibration, the object-plane fields (`_Plane.fields`)."""
+    found = np.asarray(result.status) == PointStatus.CONVERGED
+    moved = xy + np.column_stack([result.u, result.v])
+    in_plane = plane.fields(moved, found) if plane is not None else [{}] * len(xy)
     records = []
     for k in range(len(xy)):
         status = PointStatus(int(result.status[k]))
@@ -158,13 +224,22 @@ def _image_record(path: str, xy: np.ndarray, result: ICGNResult) -> dict:
                 "zncc": _finite_or_none(result.zncc[k]),
                 "iterations": int(result.iterations[k]),
                 "status": status.name.lower(),
+                **in_plane[k],
             }
         )
     return {"path": str(path), "points": records}
 
 
-def _emit(args: argparse.Namespace, measured: list[dict]) -> None:
-    document = {"images": measured}
+def _emit(
+    args: argparse.Namespace, measured: list[dict], calibration: CameraCalibration | None
+) -> None:
+    document: dict = {"images": measured}
+    if calibration is not None:
+        document["calibration"] = {
+            "file": str(args.calibration),
+            "checksum": calibration.checksum,
+            "scale_mm_per_px": calibration.scale_mm_per_px,
+        }
     if args.out:
         try:
             Path(args.out).write_text(json.dumps(document, indent=1) + "\n", encoding="utf-8")

@@ -31,8 +31,9 @@ def recording_info(path: str | Path) -> dict[str, Any]:
     where and why the file is damaged, one line), `format`, `format_version`, `test_id`,
     `started_utc`, `duration_s` (span of the messages' log times), `samples`, `channels`
     (topic -> messages), `attachments` (name -> bytes; a damaged one is left out),
-    `material`, `gauge_length_mm`, `scale_mm_per_px`, `exit_status` and `reason` (None when
-    the run's end was not recorded), `frames_processed`, `frames_dropped`,
+    `material`, `gauge_length_mm`, `scale_mm_per_px`, `measured_in` ("object plane" or
+    "nominal scale"), `calibration_checksum` (None by nominal scale), `exit_status` and
+    `reason` (None when the run's end was not recorded), `frames_processed`, `frames_dropped`,
     `full_frames_skipped`. In a damaged file, a recorded fact that cannot be read is None.
 
     Raises:
@@ -82,6 +83,8 @@ def recording_info(path: str | Path) -> dict[str, Any]:
         "material": material,
         "gauge_length_mm": fact("gauge length", lambda: _float(calibration, "gauge_length_mm")),
         "scale_mm_per_px": fact("scale", lambda: _float(calibration, "scale_mm_per_px")),
+        "measured_in": calibration.get("measured_in", "nominal scale") if calibration else None,
+        "calibration_checksum": calibration.get("checksum") or None,
         "exit_status": stop.get("exit_status"),
         "reason": stop.get("reason"),
         "frames_processed": fact("frame count", lambda: _int(stop, "frames_processed")),

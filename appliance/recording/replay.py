@@ -16,8 +16,16 @@ override (`--config FILE`: `[tracking]` keys replacing the recorded ones, e.g. a
 size or search) the test is measured again; pixels the new tracking needs but the recording
 does not hold read as zero, and `frames_reading_unrecorded_pixels` counts the frames where
 that happened. The points and their marks always come from the recording, so an override of
-any other table (`[gauge] length_mm`, the camera, the optics, ...) cannot be applied and is
-refused in one line naming it, never silently ignored.
+any other table (`[gauge] length_mm`, the camera, the optics' lens keys, ...) cannot be
+applied and is refused in one line naming it, never silently ignored.
+
+The recording measures with the calibration it was measured with: the whole calibration
+document is recorded (`appliance.recording.calibration_record`), so a replay of a test measured
+in the object plane measures in it again, bit for bit, without the file. An override's
+`[optics] calibration = "FILE"` (relative to the override file's directory) is applied as
+post-processing: the recorded marks are measured in the object plane of FILE instead (a
+calibration made for another image size is refused in one line); `calibration = ""` measures
+them by the recorded nominal scale. The summary names the calibration measured with.
 
 The file is read whole once before anything is measured, so a file that cannot be replayed
 (not one extensometer recording, its configuration or marks unreadable, its reference frame
@@ -41,11 +49,15 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from appliance.config import config_from_table, merge_tables, read_config_table
+from appliance.config import Config, config_from_table, merge_tables, read_config_table
 from appliance.errors import InputError
 from appliance.measure.frame_measurer import FrameMeasurer, StrainSample, tracker_and_gauges
 from appliance.measure.frame_windows import paste_windows, uncovered
 from appliance.measure.gauges import Calibration, Gauge, StrainGaugesLayout
+from appliance.recording.calibration_record import (
+    recorded_calibration,
+    recorded_nominal_scale,
+)
 from appliance.recording.format import (
     REFERENCE_ATTACHMENT,
     STRAIN_FIELDS,
@@ -65,6 +77,13 @@ from appliance.recording.reader import (
     run_facts,
 )
 from appliance.run.loop import LoopResult
+from appliance.run.object_plane import (
+    calibration_facts,
+    calibration_file,
+    check_image_size,
+    out_of_plane_bound,
+    resolved_calibration_path,
+)
 from appliance.run.outputs import RunFacts, RunOutput
 from appliance.run.state import ExitStatus
 from appliance.run.summary import RunOutcome, RunSummary, SampleRecord
@@ -87,7 +106,7 @@ _WHY_NOT_REPLAYABLE = {
     "gauge": "the marks were placed when the test ran, and only the pixels around them recorded",
     "camera": "the frames are recorded as they were taken",
     "trigger": "the frames are recorded as they were taken",
-    "optics": "the recorded calibration gives the scale",
+    "optics": "the recorded calibration gives the scale; only calibration can be replaced",
     "machine": "the machine's readings are recorded",
     "sim": "the simulated world's frames are recorded",
     "run": "a replay measures every recorded sample",
@@ -102,8 +121,11 @@ def _checked_override(path: Path) -> dict:
     for section, keys in table.items():
         if section in REPLAYABLE_TABLES:
             continue
+        if section == "optics" and isinstance(keys, dict) and set(keys) == {"calibration"}:
+            continue
         why = _WHY_NOT_REPLAYABLE.get(section, "a replay does not use it")
-        key = f" {next(iter(keys))}" if isinstance(keys, dict) and keys else ""
+        named = [k for k in keys if k != "calibration"] if isinstance(keys, dict) else []
+        key = f" {named[0]}" if named else ""
         raise InputError(f"{path}: [{section}]{key}: cannot be applied to a replay ({why})")
     return table
 
@@ -141,7 +163,7 @@ def _built(reader: RecordingReader, override: Path | None) -> _Setup:
             None if transverse is None else Gauge(tuple(transverse[0]), tuple(transverse[1])),
         )
         marks = tuple(tuple(int(k) for k in mark) for mark in json.loads(marks_meta["marks"]))
-        calibration = Calibration(float(calibration_meta["scale_mm_per_px"]))
+        calibration = _calibration(reader, config, calibration_meta, override, start)
         reference = Frame(
             image=reference_image,
             frame_id=int(start["reference_frame_id"]),
@@ -175,6 +197,25 @@ def _built(reader: RecordingReader, override: Path | None) -> _Setup:
     )
     measurer = FrameMeasurer(tracker, gauges, reference.timestamp_ns)
     return _Setup(facts, measurer, reference_image.shape, reference_image.dtype, reference_source)
+
+
+def _calibration(
+    reader: RecordingReader,
+    config: Config,
+    record: dict[str, str],
+    override: Path | None,
+    start: dict[str, str],
+) -> Calibration:
+    """The recorded calibration; or the override's `[optics] calibration` (a file, or ""
+    for the recorded nominal scale), checked against the recorded image size."""
+    if override is None or "calibration" not in read_config_table(override).get("optics", {}):
+        return recorded_calibration(record, str(reader.path))
+    if not config.optics.calibration:
+        return Calibration(recorded_nominal_scale(record))
+    calibration = calibration_file(resolved_calibration_path(config, override))
+    assert calibration is not None
+    check_image_size(calibration, int(start["image_width"]), int(start["image_height"]))
+    return calibration
 
 
 def _reference_image(reader: RecordingReader, start: dict[str, str]) -> tuple[np.ndarray, str]:
@@ -347,6 +388,7 @@ def _replay(
         output.end(result)
     extra = {
         **{k: v for k, v in setup.facts.facts.items() if k != "test_id"},
+        **_calibration_facts(setup),
         "recording": str(reader.path),
         "override": str(override) if override is not None else None,
         "recorded_exit_status": stop.get("exit_status"),
@@ -359,6 +401,29 @@ def _replay(
         "damage": damage,
     }
     return RunOutcome(RunSummary.from_run(result, records), extra)
+
+
+def _calibration_facts(setup: _Setup) -> dict[str, Any]:
+    """The calibration measured with, and its out-of-plane bound, as summary facts (the
+    recorded ones, unless an override replaced the calibration)."""
+    facts = setup.facts
+    calibration = facts.calibration
+    recorded = facts.facts
+    if recorded.get("calibration_checksum") == (calibration.checksum or None) and (
+        "measured_in" in recorded
+    ):
+        return {}
+    distance = recorded.get("object_distance_mm")
+    bound = out_of_plane_bound(
+        calibration,
+        float(distance) if isinstance(distance, (int, float)) else math.nan,
+        facts.gauge_length_mm,
+    )
+    return {
+        **calibration_facts(calibration),
+        "scale_mm_per_px": calibration.scale_mm_per_px,
+        **bound.facts(),
+    }
 
 
 def _count(text: str | None) -> int | None:

@@ -43,6 +43,7 @@ from appliance import __version__
 from appliance.config import RecordConfig, config_to_table
 from appliance.errors import InputError
 from appliance.measure.frame_measurer import StrainSample
+from appliance.recording.calibration_record import calibration_metadata
 from appliance.recording.format import (
     FORMAT_NAME,
     FORMAT_VERSION,
@@ -192,13 +193,7 @@ class McapRecorder:
             },
         )
         self._metadata("config", {"json": json.dumps(config_to_table(facts.config))})
-        self._metadata(
-            "calibration",
-            {
-                "scale_mm_per_px": repr(facts.calibration.scale_mm_per_px),
-                "gauge_length_mm": repr(facts.gauge_length_mm),
-            },
-        )
+        self._metadata("calibration", calibration_metadata(facts))
         layout = facts.layout
         self._metadata(
             "marks",
