@@ -23,6 +23,12 @@ with `[service] start = "auto"`, the first one at once:
 * `STATUS=` says what it is doing (idle, the test running, how the last one ended);
 * stop and zero commands act on the running test; the gauge length set point applies to the
   next test;
+* `[optics] calibration` is read at start-up (a bad file is named before the service is
+  ready) and read again at each start command, before any device opens, so a test measures
+  with the file in place when it starts and never loads one half-way (a recalibration takes
+  effect at the next test, without a restart); a file that has become unreadable, altered or
+  made for another sensor size refuses that start: the reason is logged and the exit status
+  register says fault, and the service waits for the next start command;
 * SIGTERM (or SIGINT) ends the running test as an operator stop, closes its recording, sends
   `STOPPING=1` and exits 0.
 
@@ -55,6 +61,7 @@ from appliance.measure.tracking import warm_up_kernels
 from appliance.recording.retention import enforce_retention
 from appliance.rig import check_devices
 from appliance.run.loop import DeviceEvent
+from appliance.run.object_plane import calibration_file
 from appliance.run.outputs import RunHooks
 from appliance.run.state import ExitStatus, RunState, Transition
 from appliance.runner import OutputFiles, run_test
@@ -189,9 +196,23 @@ class Service:
                 raise InputError(
                     f"[service] state_directory {directory}: cannot create ({exc.strerror})"
                 ) from None
+        self._check_calibration()
         self._check_watchdog()
         self.link.start()
         warm_up_kernels()
+
+    def _check_calibration(self) -> None:
+        """Read `[optics] calibration` once at start-up, so a bad file is named before the
+        service is ready (each test reads it again when it starts)."""
+        region = self.config.camera.region()
+        calibration = calibration_file(
+            self.config, (region.width, region.height) if region is not None else None
+        )
+        if calibration is not None:
+            self.log(
+                f"calibration {calibration.file} ({calibration.checksum}), read again at "
+                "each start command"
+            )
 
     def _check_watchdog(self) -> None:
         """Refuse a frame period of half the watchdog interval or more: a camera outage is

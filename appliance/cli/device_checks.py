@@ -10,7 +10,10 @@ position; nothing is triggered)?
 configuration, or the given overrides), free-runs it at a frame rate, grabs N frames, and
 reports size, format, the frame rate achieved (host arrival times) and by the device's
 clock, frames lost (gaps in the camera's frame counter), the device timestamps and the
-images' grey levels (to judge exposure: the saturated fraction). `check_machine` opens a
+images' grey levels (to judge exposure: the saturated fraction); with `[optics] calibration`
+it checks that the calibration was made for the images' size (a file made for another sensor
+size or region is refused, exit status 2) and reports its checksum, scale and the largest lens
+distortion it corrects in the field. `check_machine` opens a
 controller, reads its state N times and reports the last state, the read rate and the read
 latency. Neither starts a test or moves the crosshead.
 
@@ -27,8 +30,10 @@ from typing import Any
 import numpy as np
 
 from appliance.config import Config, register_map_of
+from appliance.measure.gauges import Calibration
 from appliance.measure.image_quality import view_quality
 from appliance.plan.optics import configured_optics
+from appliance.run.object_plane import check_image_size
 from hal.camera.base import Camera, CameraSettings, PixelFormat, TriggerInfo, TriggerMode
 from hal.errors import HardwareTimeout
 from hal.machine.base import MachineState, TestingMachine
@@ -75,6 +80,7 @@ def check_camera(
     rate_hz: float = 30.0,
     exposure_us: float | None = None,
     fetch_timeout_s: float = 2.0,
+    calibration: Calibration | None = None,
 ) -> dict[str, Any]:
     """Grab `frames` free-running frames and report what arrived.
 
@@ -86,6 +92,7 @@ def check_camera(
         rate_hz: the internal trigger's frame rate.
         exposure_us: exposure override, us.
         fetch_timeout_s: timeout of each fetch.
+        calibration: the `[optics] calibration` to check against the images' size.
 
     Returns:
         A JSON-ready report: `frames`, `width`, `height`, `pixel_format`, `fps` (host arrival),
@@ -97,10 +104,13 @@ def check_camera(
         backend's `statistics` where it has them, and the verdict: `fit` (bool) and
         `problems` (one phrase each: a frame rate below 90 % of the one asked for, lost
         frames, timeouts, timestamps not increasing, too dark, overexposed, no sharp
-        texture in view).
+        texture in view). With a calibration, `calibration`: its `file`, `checksum`,
+        `scale_mm_per_px` and `max_distortion_px` (the largest lens distortion over the
+        image's border and centre lines).
 
     Raises:
         HardwareError: the camera cannot be opened or configured, or sends nothing.
+        InputError: the calibration was made for another image size (names the file).
     """
     if frames < 2:
         raise ValueError(f"frames must be >= 2, got {frames}")
@@ -154,6 +164,8 @@ def check_camera(
     span_s = arrival[-1] - arrival[0]
     device_span_s = (stamp[-1] - stamp[0]) * 1e-9
     height, width = last_image.shape[:2]
+    if calibration is not None:
+        check_image_size(calibration, int(width), int(height))
     report: dict[str, Any] = {
         "camera": camera.url,
         "frames": len(ids),
@@ -177,12 +189,34 @@ def check_camera(
     }
     if stats:
         report["statistics"] = stats
+    if calibration is not None and calibration.camera is not None:
+        report["calibration"] = {
+            "file": calibration.file,
+            "checksum": calibration.checksum,
+            "scale_mm_per_px": calibration.scale_mm_per_px,
+            "max_distortion_px": _max_distortion_px(calibration, int(width), int(height)),
+        }
     view = view_quality(last_image, in_force.pixel_format.max_value)
     report["sharpest_gradient"] = view.sharpest_gradient * in_force.pixel_format.max_value
     problems = list(_delivery_problems(report)) + list(view.problems)
     report["fit"] = not problems
     report["problems"] = problems
     return report
+
+
+def _max_distortion_px(calibration: Calibration, width: int, height: int) -> float:
+    """The largest lens distortion of the calibration over the image's border and its centre
+    lines, px."""
+    assert calibration.camera is not None
+    xs = np.linspace(0.0, width - 1.0, 33)
+    ys = np.linspace(0.0, height - 1.0, 33)
+    edges = [
+        np.column_stack([xs, np.full_like(xs, y)]) for y in (0.0, (height - 1) / 2, height - 1.0)
+    ] + [np.column_stack([np.full_like(ys, x), ys]) for x in (0.0, (width - 1) / 2, width - 1.0)]
+    try:
+        return float(calibration.camera.camera.distortion_px(np.vstack(edges)).max())
+    except ValueError:
+        return float("nan")
 
 
 def _delivery_problems(report: dict[str, Any]) -> list[str]:
@@ -269,6 +303,14 @@ def camera_report_lines(report: dict[str, Any]) -> list[str]:
         f"verdict            {'fit to measure' if report['fit'] else 'NOT fit to measure'}",
         *(f"  problem          {problem}" for problem in report["problems"]),
     ]
+    calibration = report.get("calibration")
+    if calibration is not None:
+        lines.insert(
+            -1 - len(report["problems"]),
+            f"calibration        {calibration['file']} ({calibration['checksum'][:19]}...), "
+            f"{calibration['scale_mm_per_px'] * 1e3:.4f} um/px, lens distortion up to "
+            f"{calibration['max_distortion_px']:.2f} px",
+        )
     for key, value in (report.get("statistics") or {}).items():
         lines.append(f"  {key:24s} {value}")
     return lines

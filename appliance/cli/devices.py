@@ -16,6 +16,7 @@ from pathlib import Path
 from appliance.cli import arguments, device_checks
 from appliance.config import CameraConfig
 from appliance.errors import InputError
+from appliance.run.object_plane import calibration_file, resolved_calibration_path
 from hal.errors import HardwareConfigError, HardwareError
 
 CAMERA_OPTIONS = (("camera", "camera", "url"),)
@@ -97,10 +98,18 @@ def check_camera(args: argparse.Namespace) -> int:
     config = arguments.configuration(
         args.config, args, arguments.option_overrides(args, CAMERA_OPTIONS)
     )
+    config = resolved_calibration_path(config, args.config)
+    region = config.camera.region()
+    calibration = calibration_file(config, (region.width, region.height) if region else None)
     try:
         camera = device_checks.camera_for_check(config, config.camera.url)
         report = device_checks.check_camera(
-            camera, config, frames=args.frames, rate_hz=args.rate, exposure_us=args.exposure_us
+            camera,
+            config,
+            frames=args.frames,
+            rate_hz=args.rate,
+            exposure_us=args.exposure_us,
+            calibration=calibration,
         )
     except HardwareConfigError as error:
         raise InputError(f"camera-check: {error}") from None

@@ -5,6 +5,11 @@ Thin-lens optics (`appliance.plan.optics`) and the exposure planner
 then the longest exposure within the blur budget and the longest frame period within the
 search's capture range. The domain refuses impossible values (`ParameterError`); this
 command names the option that carried them.
+
+It also states the false strain an out-of-plane motion of the specimen surface causes
+(`appliance.run.object_plane`): dz / Z at the stand-off Z of an entocentric lens, 0 for a
+telecentric one, with the ISO 9513 class that bias allows at 1 % strain over the gauge length.
+Z is the calibrated plane's distance with `--calibration FILE`, else `--object-distance-mm`.
 """
 
 from __future__ import annotations
@@ -12,10 +17,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 from appliance.cli import arguments
 from appliance.config import CameraConfig, OpticsConfig
 from appliance.errors import InputError, ParameterError
+from appliance.measure.gauges import Calibration
+from appliance.optics.calibration_file import load_calibration
 from appliance.plan.exposure import (
     DEFAULT_MAX_PERIOD_S,
     motion_blur_length,
@@ -23,6 +31,7 @@ from appliance.plan.exposure import (
     plan_exposure,
 )
 from appliance.plan.optics import Optics
+from appliance.run.object_plane import OUT_OF_PLANE_MM, out_of_plane_bound
 
 OPTIONS = {
     "focal_length_mm": "--focal-length-mm",
@@ -125,6 +134,25 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         help=f"lowest frame rate, the rate the controller gets strain at, Hz "
         f"({CameraConfig.min_frame_rate_hz:g}; as [camera] min_frame_rate_hz in a test)",
     )
+    plan.add_argument(
+        "--out-of-plane-mm",
+        type=arguments.within(float, 0.0, 100.0),
+        default=OUT_OF_PLANE_MM,
+        help=f"out-of-plane motion of the specimen surface to state the false strain of, mm "
+        f"({OUT_OF_PLANE_MM:g})",
+    )
+    plan.add_argument(
+        "--gauge-length-mm",
+        type=arguments.within(float, 0.0, 10000.0, above=True),
+        default=50.0,
+        help="gauge length L0 for the ISO 9513 class of that false strain, mm (50)",
+    )
+    plan.add_argument(
+        "--calibration",
+        type=Path,
+        metavar="FILE",
+        help="camera calibration (extensometer calibrate): the stand-off Z is its plane's",
+    )
     plan.add_argument("--json", action="store_true", help="print JSON on stdout")
     plan.set_defaults(handler=plan_exposure_for_speed)
 
@@ -158,6 +186,21 @@ def _plan(args: argparse.Namespace) -> int:
         min_frame_rate_hz=args.min_frame_rate_hz,
         blur_budget_px=args.blur_budget_px,
     )
+    calibration = Calibration(optics.scale_mm_per_px)
+    if args.calibration is not None:
+        try:
+            calibration = Calibration.object_plane(
+                load_calibration(args.calibration), str(args.calibration)
+            )
+        except InputError as exc:
+            raise InputError(f"plan: --calibration: {exc}") from None
+    bound = out_of_plane_bound(
+        calibration,
+        optics.object_distance_mm,
+        args.gauge_length_mm,
+        args.out_of_plane_mm,
+        object_distance_from="--object-distance-mm",
+    )
     document = {
         "image_distance_mm": optics.image_distance_mm,
         "magnification": optics.magnification,
@@ -179,6 +222,8 @@ def _plan(args: argparse.Namespace) -> int:
         "period_covers_exposure": plan.period_covers_exposure,
         "exposure_limit": plan.exposure_limit,
         "period_limit": plan.period_limit,
+        "gauge_length_mm": args.gauge_length_mm,
+        **bound.facts(),
     }
     if args.json:
         json.dump(document, sys.stdout, indent=1)
@@ -208,6 +253,7 @@ def _plan(args: argparse.Namespace) -> int:
             f"{plan.motion_per_frame_px:.3f} px (capture range {args.capture_range_px:g} px"
             f"{capture})",
         ),
+        ("out of plane", bound.describe()),
     ]
     width = max(len(label) for label, _ in rows) + 2
     for label, value in rows:

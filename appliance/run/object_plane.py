@@ -171,12 +171,16 @@ def out_of_plane_bound(
     object_distance_mm: float,
     gauge_length_mm: float,
     motion_mm: float = OUT_OF_PLANE_MM,
+    *,
+    object_distance_from: str = "[optics] object_distance_mm",
 ) -> OutOfPlaneBound:
     """The false strain `motion_mm` out of plane causes, and the ISO 9513 class its bias
     leaves at 1 % strain over `gauge_length_mm` (the measured elongation reads
     (1 + e)(1 + dz / Z) - 1 of L0 for a true strain e); `object_distance_mm` is the thin-lens
-    stand-off, used without a calibration."""
+    stand-off, used without a calibration (`object_distance_from` names where it was given)."""
     z, source = stand_off(calibration.camera, object_distance_mm)
+    if calibration.camera is None:
+        source = object_distance_from
     false_strain = 0.0 if z is None else motion_mm / z
     true_um = STRAIN_FOR_CLASS * gauge_length_mm * 1e3
     measured_um = ((1 + STRAIN_FOR_CLASS) * (1 + false_strain) - 1) * gauge_length_mm * 1e3
