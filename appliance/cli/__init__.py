@@ -12,6 +12,9 @@ Subcommands, each parsed and handled in its own module of this package:
     camera-check   grab frames from a camera and report size, format, rate and losses.
     machine-check  read the machine's state and report it, with read rate and latency.
     trigger-check  handshake with the trigger microcontroller, time its link, fit its clock.
+    verify         ISO 9513 verification against a calibrator (`--sim`: a simulated one; or a
+                   lab's readings): bias, resolution, gauge length, class; a JSON and an HTML
+                   report.
     bench          the benchmarks (accuracy, speed, simulated tests, Modbus latency, camera,
                    machine, trigger jitter, clock sync): figures and reports.
 
@@ -26,7 +29,7 @@ import os
 import sys
 from collections.abc import Sequence
 
-from appliance.cli import bench, devices, plan, recording, run, track
+from appliance.cli import bench, devices, plan, recording, run, track, verify
 from appliance.cli.arguments import Parser
 from appliance.errors import InputError
 
@@ -43,6 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_parsers(commands)
     recording.add_parsers(commands)
     devices.add_parsers(commands)
+    verify.add_parser(commands)
     return parser
 
 
