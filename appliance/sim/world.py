@@ -34,9 +34,13 @@ from appliance.config import Config
 from appliance.errors import InputError
 from appliance.measure.frame_measurer import StrainSample
 from appliance.measure.gauges import Gauge
+from appliance.optics.camera_model import CameraModel, LensDistortion, PlanePose
 from appliance.plan.optics import Optics
 from appliance.sim.bar import BarModel
+from appliance.sim.bench import BENCHES, BenchErrors, bench_errors
+from appliance.sim.bench_scene import BenchScene
 from appliance.sim.crosshead import Crosshead
+from appliance.sim.lens import BenchGeometry
 from appliance.sim.machine import MachineWithSpecimen
 from appliance.sim.materials import ElasticPlastic, MooneyRivlin
 from appliance.sim.scene import TEXTURE_OVERSAMPLE, SpecimenScene, SpeckleCoat
@@ -119,6 +123,12 @@ class SimWorld:
         encoder_counts_per_mm: the crosshead encoder's resolution.
         speed_changes: the simulated controller's speed program after the start: (seconds
             after the start, mm/min), in increasing time.
+        bench: the bench's error sources (`appliance.sim.bench`); None = the ideal bench.
+
+    Attributes:
+        bench: the bench's error sources in force.
+        geometry: the bench's geometry (`appliance.sim.lens.BenchGeometry`).
+        scene: the camera's view (a `BenchScene` unless the bench is ideal).
 
     The camera's trigger input is wired to `trigger`, the simulated trigger microcontroller
     (`appliance.sim.trigger`), which the test configures and arms for EXTERNAL triggering.
@@ -139,6 +149,7 @@ class SimWorld:
         camera_hang_after_s: float | None = None,
         encoder_counts_per_mm: float = 1000.0,
         speed_changes: tuple[tuple[float, float], ...] = (),
+        bench: BenchErrors | None = None,
     ) -> None:
         self.preset = preset
         self.specimen = preset.specimen()
@@ -170,16 +181,33 @@ class SimWorld:
         if bottom - top + 2 * margin > height * scale:
             centre_y = bottom + margin - 0.5 * height * scale
         length = self.specimen.overall_length_mm
-        self.scene = SpecimenScene(
-            self.machine.deformation_at,
+        self.bench = bench or ideal_bench()
+        self.geometry = BenchGeometry(
+            self.bench,
             scale_mm_per_px=scale,
-            sensor_width=width,
-            sensor_height=height,
-            material_y_range_mm=(-0.5 * length, 0.5 * length),
-            half_width_mm=0.5 * self.specimen.end_width_mm,
+            object_distance_mm=self.optics.object_distance_mm,
+            sensor_size=(width, height),
             centre_mm=(0.0, centre_y),
-            coat=SpeckleCoat(radius_mm=preset.speckle_radius_mm, seed=seed),
+            thickness_mm=self.specimen.thickness_mm,
+            seed=seed,
         )
+        view = {
+            "material_y_range_mm": (-0.5 * length, 0.5 * length),
+            "half_width_mm": 0.5 * self.specimen.end_width_mm,
+            "coat": SpeckleCoat(radius_mm=preset.speckle_radius_mm, seed=seed),
+        }
+        self.scene: SpecimenScene
+        if self.bench.is_ideal:
+            self.scene = SpecimenScene(
+                self.machine.deformation_at,
+                scale_mm_per_px=scale,
+                sensor_width=width,
+                sensor_height=height,
+                centre_mm=(0.0, centre_y),
+                **view,
+            )
+        else:
+            self.scene = BenchScene(self.machine.deformation_at, self.geometry, **view)
         self.camera = camera_from_url(
             "sim://camera",
             scene=self.scene,
@@ -243,6 +271,9 @@ class SimWorld:
                 if config.sim.speed_change_after_s
                 else ()
             ),
+            bench=bench_errors(
+                config.sim, (width, height), optics.object_distance_mm / optics.scale_mm_per_px
+            ),
         )
         duration_s = world.planned_duration_s
         if duration_s > MAX_TEST_DURATION_S:
@@ -270,25 +301,71 @@ class SimWorld:
         return self.specimen.gauge_length_mm
 
     @property
+    def lens_camera(self) -> CameraModel:
+        """The true camera the world renders with (for scoring: nothing that measures reads
+        it): a pinhole or telecentric model with the bench's distortion."""
+        return self.geometry.camera
+
+    @property
+    def specimen_plane(self) -> PlanePose:
+        """The specimen surface's true pose at rest in `lens_camera`'s frame (plane X, Y are
+        the object-plane x, y of `appliance.sim.deformation`, mm)."""
+        return self.geometry.pose
+
+    @property
     def specimen_centre_px(self) -> tuple[float, float]:
         """Pixel (x, y) of the undeformed specimen's centre."""
-        x, y = self.scene.pixel_of(0.0, 0.0)
+        scene = self.scene
+        if isinstance(scene, BenchScene):
+            x, y = scene.sensor_positions(np.zeros((1, 2)), self.machine.deformation_at(0.0), 0.0)[
+                0
+            ]
+        else:
+            x, y = scene.pixel_of(0.0, 0.0)
         return float(x), float(y)
 
     def gauge_truth(self, points_px: np.ndarray, axial: Gauge, reference: Frame) -> GaugeTruth:
         """Truth for gauge points placed at `points_px` in the reference frame."""
         truth = reference.metadata["truth"]
         material = self.scene.material_points(points_px, truth["time_s"])
-        return GaugeTruth(self.scene, material, axial, self.optics.scale_mm_per_px, points_px)
+        return GaugeTruth(
+            self.scene,
+            material,
+            axial,
+            self.optics.scale_mm_per_px,
+            points_px,
+            reference_time_s=truth["time_s"],
+        )
+
+
+def ideal_bench() -> BenchErrors:
+    """The ideal bench: telecentric, distortion-free, nothing else."""
+    preset = BENCHES["ideal"]
+    return BenchErrors(
+        name="ideal",
+        entocentric=False,
+        distortion=LensDistortion(),
+        camera_tilt_deg=0.0,
+        thinning_out_of_plane=False,
+        slack_out_of_plane_mm=0.0,
+        flicker_percent=0.0,
+        mains_frequency_hz=50.0,
+        vibration_px_rms=0.0,
+        vibration_frequency_hz=preset.vibration_frequency_hz,
+        warm_up_drift_percent=0.0,
+        warm_up_time_constant_s=preset.warm_up_time_constant_s,
+    )
 
 
 class GaugeTruth:
     """True engineering strain and elongation of an axial gauge, frame by frame.
 
-    The gauge's points are material points (where they were placed in the reference image);
-    in every frame their true image positions are the exposure-averaged positions the scene
-    rendered, and the true gauge length follows from them exactly as the measured one does
-    from the tracked positions.
+    The gauge's points are material points (where they were placed in the reference image).
+    The true gauge length is the distance between the marks' exposure-averaged object-plane
+    positions, mm (the specimen's own elongation, whatever the bench); the image positions,
+    px, are where the camera sees those points through the bench (the blur). On the ideal
+    bench the object plane is the image at a fixed scale, and the length is taken from the
+    image positions exactly as the measured one is from the tracked positions.
     """
 
     def __init__(
@@ -298,12 +375,17 @@ class GaugeTruth:
         axial: Gauge,
         scale_mm_per_px: float,
         reference_points_px: np.ndarray,
+        reference_time_s: float = 0.0,
     ) -> None:
         self.scene = scene
         self.material_points_mm = material_points_mm
         self.axial = axial
         self.scale = scale_mm_per_px
         self.l0_px = axial.length_px(reference_points_px)
+        self.l0_mm = self.l0_px * scale_mm_per_px
+        if isinstance(scene, BenchScene):
+            t_s = reference_time_s
+            self.l0_mm = axial.length_px(scene.object_positions(material_points_mm, t_s, t_s))
 
     def blur_px(self, sample: StrainSample) -> float:
         """Largest distance a gauge point travelled during the frame's exposure, px."""
@@ -317,6 +399,12 @@ class GaugeTruth:
         """(true engineering strain, true elongation mm) for the frame of `sample`."""
         start = sample.timestamp_ns * 1e-9
         stop = start + sample.exposure_us * 1e-6
-        positions = self.scene.image_positions(self.material_points_mm, start, stop)
+        scene = self.scene
+        if isinstance(scene, BenchScene):
+            length = self.axial.length_px(
+                scene.object_positions(self.material_points_mm, start, stop)
+            )
+            return (length - self.l0_mm) / self.l0_mm, length - self.l0_mm
+        positions = scene.image_positions(self.material_points_mm, start, stop)
         length = self.axial.length_px(positions)
         return (length - self.l0_px) / self.l0_px, (length - self.l0_px) * self.scale
