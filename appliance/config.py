@@ -192,6 +192,10 @@ class SimConfig:
     127.0.0.1 (a free port, the generic register map) and reads it through the appliance's
     Modbus client and poller, as a real controller is read (`appliance.sim.controller_server`);
     `direct` reads it in-process.
+    `bench` sets the simulated bench's error sources together (`appliance.sim.bench`): `ideal`
+    (telecentric, nothing else), `typical` (a careful lab) or `harsh`; each of the keys from
+    `lens` on that is set (not None) replaces the bench's value. Distortion coefficients are
+    OpenCV's, in the normalised units of a pinhole at the object distance whatever the lens.
     """
 
     material: str = field(default="rubber", metadata={"choices": ("rubber", "metal")})

@@ -21,9 +21,13 @@ renderer) falls behind by more than a frame period, the exposures it missed are 
 frame ids skip them, as a camera whose buffers overflow does; as fast as possible, nothing is
 ever missed.
 
-What it does not model: lens distortion, vignetting, rolling shutter, dark current and fixed
-pattern noise, corrupted frames, transport latency or bandwidth limits, trigger
-jitter (edges are exact), or readout time limiting the frame rate.
+The optics and the light are the scene's: a scene may render through a distorting, tilted
+lens with flicker, vibration and drift (the simulated bench, `appliance.sim.bench_scene`);
+the camera only exposes, adds noise and quantises what it renders.
+
+What it does not model: vignetting, rolling shutter, dark current and fixed pattern noise,
+corrupted frames, transport latency or bandwidth limits, trigger jitter (edges are exact), or
+readout time limiting the frame rate.
 """
 
 from __future__ import annotations
