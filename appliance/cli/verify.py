@@ -136,10 +136,14 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 
 def run_verify(args: argparse.Namespace) -> int:
     """Run `verify`; 0 when the requested class is met, 1 when not."""
+    from appliance.run.object_plane import resolved_calibration_path
     from appliance.run.verification_report import write_verification
 
-    config = arguments.configuration(
-        args.config, args, arguments.option_overrides(args, VERIFY_OPTIONS)
+    config = resolved_calibration_path(
+        arguments.configuration(
+            args.config, args, arguments.option_overrides(args, VERIFY_OPTIONS)
+        ),
+        args.config,
     )
     requested = class_named(args.extensometer_class)
     facts: dict[str, Any] = {
@@ -168,11 +172,12 @@ def _nominal_gauge_length(config: Config, args: argparse.Namespace) -> float | N
 def _from_readings(
     config: Config, args: argparse.Namespace, facts: dict[str, Any]
 ) -> VerificationData:
-    from appliance.optics.calibration_file import load_calibration
+    from appliance.run.object_plane import calibration_file
     from appliance.run.verification_readings import read_readings
 
-    if config.optics.calibration:
-        facts["calibration_checksum"] = load_calibration(Path(config.optics.calibration)).checksum
+    calibration = calibration_file(config)
+    if calibration is not None:
+        facts["calibration_checksum"] = calibration.checksum
     points, rest = read_readings(args.readings)
     facts["readings_file"] = str(args.readings)
     facts["readings_sha256"] = hashlib.sha256(args.readings.read_bytes()).hexdigest()
@@ -187,10 +192,9 @@ def _from_readings(
 
 def _simulated(config: Config, args: argparse.Namespace, facts: dict[str, Any]) -> VerificationData:
     """Measure the simulated calibrator: every series, the readings at rest, the gauge length."""
-    from appliance.measure.gauges import Calibration
-    from appliance.optics.calibration_file import load_calibration
     from appliance.plan.optics import configured_optics
     from appliance.run.calibrator_measurement import Setup, measure_series
+    from appliance.run.object_plane import configured_calibration
     from appliance.sim.calibrator import SimCalibrator, telecentric_view
     from appliance.sim.world import PRESETS
 
@@ -204,13 +208,8 @@ def _simulated(config: Config, args: argparse.Namespace, facts: dict[str, Any]) 
     width = config.sim.sensor_width_px or preset.sensor_size[0]
     height = config.sim.sensor_height_px or preset.sensor_size[1]
     nominal = _nominal_gauge_length(config, args) or preset.specimen().gauge_length_mm
-    calibration = Calibration(optics.scale_mm_per_px)
-    if config.optics.calibration:
-        camera_calibration = load_calibration(
-            Path(config.optics.calibration), sensor_size=(width, height)
-        )
-        facts["calibration_checksum"] = camera_calibration.checksum
-        calibration = Calibration(camera_calibration.scale_mm_per_px)
+    calibration = configured_calibration(config, optics, (width, height))
+    facts["calibration_checksum"] = calibration.checksum or None
     camera, pose = telecentric_view((width, height), optics.scale_mm_per_px)
     block_mm = min(10.0, 0.5 * nominal)
     try:
@@ -260,6 +259,7 @@ def _simulated(config: Config, args: argparse.Namespace, facts: dict[str, Any]) 
             "bench": config.sim.bench,
             "material": config.sim.material,
             "scale_mm_per_px": calibration.scale_mm_per_px,
+            "object_plane": calibration.in_object_plane,
             "sensor_px": f"{width}x{height}",
             "calibrator_error_percent": args.calibrator_error_percent,
             "calibrator_offset_um": args.calibrator_offset_um,

@@ -99,37 +99,36 @@ class SeriesReader:
         )
         self.setup = setup
         theta = math.radians(g.axis_deg)
-        self.axis = (math.cos(theta), math.sin(theta))
-        self.gauge_length_mm = self._measure_gauge_length(reference)
+        self.axis = np.array([math.cos(theta), math.sin(theta)])
+        marks = [points[list(mark)].mean(axis=0) for mark in layout.marks[:2]]
+        self.gauge_length_mm = self._measure_gauge_length(reference, marks)
 
     def read_um(self, image: np.ndarray) -> float:
         """The elongation the gauges read on `image`, um (NaN: a mark lost)."""
         frame = self.tracker.track(np.asarray(image, dtype=np.float64), 0.0)
         return self.gauges.read(frame.positions, frame.measured).elongation_mm * 1e3
 
-    def _measure_gauge_length(self, reference: np.ndarray) -> float | None:
-        """The distance between the targets' lines on the reference frame, mm; None when a
-        line is not found."""
-        s = self.setup
-        scale = s.calibration.scale_mm_per_px
-        half_px = 0.5 * s.gauge_length_mm / scale
-        ends = []
-        for sign in (-1.0, 1.0):
-            centre = (
-                s.centre_px[0] + sign * half_px * self.axis[0],
-                s.centre_px[1] + sign * half_px * self.axis[1],
-            )
-            found = line_offset_px(reference, centre, self.axis, LINE_SEARCH_MM / scale)
+    def _measure_gauge_length(self, reference: np.ndarray, marks: list[np.ndarray]) -> float | None:
+        """The distance between the targets' lines on the reference frame, mm (on the
+        specimen plane with a calibration's projection); None when a line is not found."""
+        calibration = self.setup.calibration
+        search_px = LINE_SEARCH_MM / calibration.scale_mm_per_px
+        lines = []
+        for mark in marks:
+            found = line_offset_px(reference, (mark[0], mark[1]), self.axis, search_px)
             if found is None:
                 return None
-            ends.append(sign * half_px + found)
-        return (ends[1] - ends[0]) * scale
+            lines.append(mark + found * self.axis)
+        if calibration.projection is not None:
+            ends = calibration.projection.to_plane_mm(np.array(lines))
+            return float(np.hypot(*(ends[1] - ends[0])))
+        return float(np.hypot(*(lines[1] - lines[0]))) * calibration.scale_mm_per_px
 
 
 def line_offset_px(
     image: np.ndarray,
     centre_px: tuple[float, float],
-    axis: tuple[float, float],
+    axis: np.ndarray,
     search_px: float,
     band_px: int = LINE_BAND_PX,
 ) -> float | None:
