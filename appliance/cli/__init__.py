@@ -12,6 +12,8 @@ Subcommands, each parsed and handled in its own module of this package:
     camera-check   grab frames from a camera and report size, format, rate and losses.
     machine-check  read the machine's state and report it, with read rate and latency.
     trigger-check  handshake with the trigger microcontroller, time its link, fit its clock.
+    calibrate      camera calibration from images of a target (ChArUco, chessboard, circle
+                   grid) into a calibration file; `--check FILE`: does it still fit.
     verify         ISO 9513 verification against a calibrator (`--sim`: a simulated one; or a
                    lab's readings): bias, resolution, gauge length, class; a JSON and an HTML
                    report.
@@ -29,7 +31,7 @@ import os
 import sys
 from collections.abc import Sequence
 
-from appliance.cli import bench, devices, plan, recording, run, track, verify
+from appliance.cli import bench, calibrate, devices, plan, recording, run, track, verify
 from appliance.cli.arguments import Parser
 from appliance.errors import InputError
 
@@ -41,6 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = Parser(prog="extensometer", description=__doc__.split("\n\n")[0])
     commands = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
     track.add_parser(commands)
+    calibrate.add_parser(commands)
     bench.add_parser(commands)
     plan.add_parser(commands)
     run.add_parsers(commands)

@@ -13,24 +13,31 @@ pixel grid cannot carry. A symmetric filter does not move a straight edge, a che
 saddle point or a circle's centre, so corner truth stays where the geometry puts it.
 `supersample` n > 1 averages n x n sample positions inside each pixel (a box filter on top).
 
-Truth for targets is geometric: `PlaneProjection(camera, pose).to_pixels(points_mm)` of the
-target's corners (`CalibrationTarget.object_points_mm`).
+Calibration targets (`appliance.optics.calibration_target.CalibrationTarget`: ChArUco,
+chessboard, circle grid) are drawn as textures with a white quiet zone of one square around
+them (`target_texture`), rendered in 8 bits with grey levels and Gaussian noise
+(`render_target`), and posed for a calibration by `calibration_poses`: views that tilt the
+board by 30..45 degrees about a random in-plane axis and move it over the field. Their truth is
+geometric: `target_pixels` projects the target's corners through the true camera and pose.
 """
 
 from __future__ import annotations
 
 import functools
 import math
+from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 from scipy import ndimage
 
+from appliance.optics.calibration_target import CIRCLE_DIAMETER_FRACTION, CalibrationTarget
 from appliance.optics.camera_model import CameraModel, PlanePose, PlaneProjection
 
 FloatArray = npt.NDArray[np.float64]
 
-DEFAULT_BLUR_PX = 0.5
+DEFAULT_BLUR_PX = 1.0
 
 
 def render_plane(
@@ -140,3 +147,184 @@ def _intersect(
     points[~hits] = 0.0
     plane = (points - translation) @ rotation[:, :2]
     return plane, hits
+
+
+@dataclass(frozen=True)
+class TargetLook:
+    """How a target image looks: grey levels (8-bit counts) and noise.
+
+    Attributes:
+        white, black: grey of the target's white and black, counts.
+        background: grey of what lies around the target, counts.
+        noise_grey: standard deviation of the Gaussian sensor noise, counts.
+        blur_px: anti-aliasing and lens blur, px (see `render_plane`).
+    """
+
+    white: float = 200.0
+    black: float = 30.0
+    background: float = 90.0
+    noise_grey: float = 1.0
+    blur_px: float = DEFAULT_BLUR_PX
+
+
+def target_texture(
+    target: CalibrationTarget, texel_mm: float = 0.05
+) -> tuple[FloatArray, float, tuple[float, float]]:
+    """The target drawn as a texture (1 = white, 0 = black) with a white quiet zone of one
+    square around it.
+
+    Args:
+        target: the target.
+        texel_mm: wanted texel size, mm; rounded so that a square is a whole number of texels.
+
+    Returns:
+        (texture, texel_mm, origin_mm) as `render_plane` takes them.
+    """
+    texels_per_square = max(8, round(target.square_mm / texel_mm))
+    return _texture(target, texels_per_square)
+
+
+@functools.lru_cache(maxsize=4)
+def _texture(
+    target: CalibrationTarget, texels_per_square: int
+) -> tuple[FloatArray, float, tuple[float, float]]:
+    texel = target.square_mm / texels_per_square
+    n = texels_per_square
+    columns, rows = target.columns, target.rows
+    if target.kind == "charuco":
+        drawn = target.charuco_board().generateImage((columns * n, rows * n), marginSize=0)
+        pattern = np.asarray(drawn, np.float64) / 255.0
+    elif target.kind == "chessboard":
+        row, column = np.mgrid[0 : rows * n, 0 : columns * n] // n
+        pattern = ((row + column) % 2).astype(np.float64)
+    else:
+        width, height = (columns + 1) * n, (rows + 1) * n
+        y, x = (np.mgrid[0:height, 0:width] + 0.5) * texel
+        pitch = target.square_mm
+        dx = x - pitch * np.clip(np.rint(x / pitch), 1, columns)
+        dy = y - pitch * np.clip(np.rint(y / pitch), 1, rows)
+        radius = 0.5 * CIRCLE_DIAMETER_FRACTION * pitch
+        pattern = np.clip(0.5 + (np.hypot(dx, dy) - radius) / texel, 0.0, 1.0)
+    texture = np.pad(pattern, n, constant_values=1.0)
+    texture.setflags(write=False)
+    origin = (0.5 * texel - target.square_mm, 0.5 * texel - target.square_mm)
+    return texture, texel, origin
+
+
+def target_pixels(target: CalibrationTarget, pose: PlanePose, camera: CameraModel) -> FloatArray:
+    """True pixel positions (n, 2) of every corner of the target (ids in order)."""
+    return PlaneProjection(camera, pose).to_pixels(target.object_points_mm)
+
+
+def render_target(
+    target: CalibrationTarget,
+    pose: PlanePose,
+    camera: CameraModel,
+    *,
+    look: TargetLook | None = None,
+    seed: int = 0,
+    texel_mm: float = 0.05,
+) -> npt.NDArray[np.uint8]:
+    """An 8-bit image of `target` lying in the plane `pose`, seen through `camera`."""
+    look = look or TargetLook()
+    texture, texel, origin = target_texture(target, texel_mm)
+    grey = look.black + (look.white - look.black) * texture
+    image = render_plane(grey, texel, origin, pose, camera, look.background, blur_px=look.blur_px)
+    image += np.random.default_rng(seed).normal(0.0, look.noise_grey, image.shape)
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+def calibration_poses(
+    camera: CameraModel,
+    target: CalibrationTarget,
+    count: int,
+    *,
+    distance_mm: float,
+    seed: int = 0,
+    tilt_deg: tuple[float, float] = (30.0, 45.0),
+) -> list[PlanePose]:
+    """Poses of `target` for a calibration: the first faces the camera at the image centre
+    (the specimen plane), the others tilt it by `tilt_deg` about a random in-plane axis and
+    centre it in turn near the field's four corners and four edges (jittered), at
+    `distance_mm` along the ray, moving it towards the centre until it is in view. A ChArUco
+    board may overhang the image (at least half of its corners stay in, a square's width
+    inside the edges), reaching the field's corners; other targets stay whole.
+
+    Raises:
+        ValueError: no pose could be found that keeps enough of the target in view (the target
+            is too large for the field at that distance).
+    """
+    rng = np.random.default_rng(seed)
+    scale = camera_scale_mm_per_px(camera, distance_mm)
+    reach = 0.4 if target.kind == "charuco" else 0.9
+    half_x = min(0.5, reach * 0.5 * target.size_mm[0] / scale / camera.width_px)
+    half_y = min(0.5, reach * 0.5 * target.size_mm[1] / scale / camera.height_px)
+    spots = [(x, y) for y in (half_y, 0.5, 1.0 - half_y) for x in (half_x, 0.5, 1.0 - half_x)]
+    spots = spots[:4] + spots[5:]
+    poses = [_pose_at(camera, target, distance_mm, (0.5, 0.5), 0.0, 0.0, 0.0)]
+    tries = 0
+    while len(poses) < count:
+        tries += 1
+        if tries > 400:
+            raise ValueError(
+                f"{target.describe()}: no tilted pose keeps it in view at {distance_mm:g} mm"
+            )
+        spot = spots[(len(poses) - 1) % len(spots)]
+        shrink = max(0.0, 1.0 - 0.01 * tries)
+        jitter = rng.uniform(-0.03, 0.03, 2)
+        where = (
+            0.5 + shrink * (spot[0] - 0.5) + jitter[0],
+            0.5 + shrink * (spot[1] - 0.5) + jitter[1],
+        )
+        tilt = math.radians(rng.uniform(*tilt_deg))
+        axis = rng.uniform(0.0, 2.0 * math.pi)
+        spin = math.radians(rng.uniform(-10.0, 10.0))
+        pose = _pose_at(camera, target, distance_mm, where, tilt, axis, spin)
+        if _in_view(camera, target, pose):
+            poses.append(pose)
+            tries = 0
+    return poses
+
+
+def camera_scale_mm_per_px(camera: CameraModel, distance_mm: float) -> float:
+    """Scale at the image centre of a plane facing the camera at `distance_mm`, mm/px."""
+    pose = PlanePose.facing(distance_mm)
+    return PlaneProjection(camera, pose).scale_mm_per_px((camera.cx_px, camera.cy_px))
+
+
+def _pose_at(
+    camera: CameraModel,
+    target: CalibrationTarget,
+    distance_mm: float,
+    where: tuple[float, float],
+    tilt_rad: float,
+    axis_rad: float,
+    spin_rad: float,
+) -> PlanePose:
+    tilt = tilt_rad * np.array([math.cos(axis_rad), math.sin(axis_rad), 0.0])
+    rotation = cv2.Rodrigues(tilt)[0] @ cv2.Rodrigues(np.array([0.0, 0.0, spin_rad]))[0]
+    pixel = [[where[0] * (camera.width_px - 1), where[1] * (camera.height_px - 1)]]
+    a, b = camera.normalised(pixel)[0]
+    aim = np.array([a, b, distance_mm]) if camera.telecentric else distance_mm * np.array([a, b, 1])
+    centre = np.array([0.5 * target.size_mm[0], 0.5 * target.size_mm[1], 0.0])
+    translation = aim - rotation @ centre
+    return PlanePose.from_arrays(cv2.Rodrigues(rotation)[0], translation)
+
+
+def _in_view(camera: CameraModel, target: CalibrationTarget, pose: PlanePose) -> bool:
+    try:
+        pixels = target_pixels(target, pose, camera)
+        margin = target.square_mm / PlaneProjection(camera, pose).scale_mm_per_px(
+            (camera.cx_px, camera.cy_px)
+        )
+    except ValueError:
+        return False
+    inside = (
+        (pixels[:, 0] >= margin)
+        & (pixels[:, 0] <= camera.width_px - 1 - margin)
+        & (pixels[:, 1] >= margin)
+        & (pixels[:, 1] <= camera.height_px - 1 - margin)
+    )
+    if target.kind == "charuco":
+        return bool(inside.mean() >= 0.5)
+    return bool(inside.all())
