@@ -308,7 +308,7 @@ class RerunConfig:
     image_rate_hz: float = field(default=2.0, metadata=_range(0.0, 1000.0))
     image_scale: float = field(default=0.5, metadata=_range(0.05, 1.0))
     queue_size: int = field(default=64, metadata=_range(1, 100000))
-    history_mb: float = field(default=256.0, metadata=_range(1.0, 65536.0))
+    history_mb: float = field(default=64.0, metadata=_range(1.0, 65536.0))
 
 
 @dataclass(frozen=True)

@@ -89,7 +89,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 
 
 def _add_soak(benches: argparse._SubParsersAction) -> None:
-    from appliance.bench.soak import SHIPPED_CONFIGURATION
+    from appliance.bench.soak import SHIPPED_CONFIGURATION, WARM_UP_TESTS
 
     soak = benches.add_parser(
         "soak",
@@ -112,6 +112,13 @@ def _add_soak(benches: argparse._SubParsersAction) -> None:
         type=arguments.within(float, 0.5, 3600.0),
         default=5.0,
         help="how long each test measures before the stop command (default 5)",
+    )
+    soak.add_argument(
+        "--warm-up-tests",
+        type=arguments.within(int, 0, 100000),
+        default=WARM_UP_TESTS,
+        help=f"tests left out of the slopes (default {WARM_UP_TESTS}: kernels, caches, the "
+        "viewer's history filling up)",
     )
     soak.add_argument("--no-viewer", action="store_true", help="without the Rerun server")
     _add_json_and_out(soak)
@@ -143,6 +150,7 @@ def _soak(args: argparse.Namespace) -> int:
         duration_s=args.duration_s,
         test_s=args.test_s,
         viewer=not args.no_viewer,
+        warm_up_tests=args.warm_up_tests,
     )
 
 
