@@ -195,14 +195,10 @@ def _simulated(config: Config, args: argparse.Namespace, facts: dict[str, Any]) 
     from appliance.plan.optics import configured_optics
     from appliance.run.calibrator_measurement import Setup, measure_series
     from appliance.run.object_plane import configured_calibration
-    from appliance.sim.calibrator import SimCalibrator, telecentric_view
+    from appliance.sim.bench import bench_errors
+    from appliance.sim.calibrator import SimCalibrator, calibrator_bench
     from appliance.sim.world import PRESETS
 
-    if config.sim.bench != "ideal":
-        raise InputError(
-            f"[sim] bench = {config.sim.bench!r}: the simulated calibrator is seen through the "
-            'ideal bench only ("ideal": a telecentric, distortion-free camera)'
-        )
     preset = PRESETS[config.sim.material]
     optics = configured_optics(config, preset.optics)
     width = config.sim.sensor_width_px or preset.sensor_size[0]
@@ -210,13 +206,23 @@ def _simulated(config: Config, args: argparse.Namespace, facts: dict[str, Any]) 
     nominal = _nominal_gauge_length(config, args) or preset.specimen().gauge_length_mm
     calibration = configured_calibration(config, optics, (width, height))
     facts["calibration_checksum"] = calibration.checksum or None
-    camera, pose = telecentric_view((width, height), optics.scale_mm_per_px)
+    scale = optics.scale_mm_per_px
+    bench = calibrator_bench(
+        bench_errors(config.sim, (width, height), optics.object_distance_mm / scale),
+        scale_mm_per_px=scale,
+        object_distance_mm=optics.object_distance_mm,
+        sensor_size=(width, height),
+        seed=config.sim.seed,
+    )
+    try:
+        bench.check_field()
+    except ValueError as exc:
+        raise InputError(f"[sim] lens_k1, lens_k2, lens_p1, lens_p2: {exc}") from None
     block_mm = min(10.0, 0.5 * nominal)
     try:
         calibrator = SimCalibrator(
             gauge_length_mm=nominal,
-            camera=camera,
-            pose=pose,
+            bench=bench,
             speckle_radius_mm=preset.speckle_radius_mm,
             block_mm=block_mm,
             travel_mm=1.2 * args.range_um * 1e-3,

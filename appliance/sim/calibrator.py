@@ -12,13 +12,20 @@ moves by `displacement_um`, which differs from the reading by the calibrator's o
 so a calibrator whose scale reads 0.4 % long (`scale_error` = 0.004) makes a perfect
 extensometer look 0.4 % short (relative bias about -0.4 %). Both errors are 0 by default.
 
-Each frame is rendered through a camera model (`appliance.sim.target.render_plane`: the
-lens's distortion and perspective with an entocentric camera, exact rays) from a texture of
-the plane, built anew for each position of the moving block from the analytic speckle
-pattern (`appliance.dic.synthetic`), so every displacement is exact to the texture's
-interpolation; then the camera adds shot and read noise and quantises to 8 bits, as the
-simulated camera does. The truth (`displacement_um`) only scores: the extensometer measures
-the frames.
+The blocks are seen through the simulated bench (`appliance.sim.lens.BenchGeometry`, the
+`[sim] bench` preset and keys): its camera model and the plane's pose at rest (the lens's
+distortion, an entocentric lens's perspective, the camera's tilt) and, frame by frame, as
+the bench moves the ideal image (`appliance.sim.lens`): the warm-up drift of the image
+scale, the vibration's image shift and the light's flicker, at the frame's time (frames
+`frame_interval_s` apart from the first, the camera switched on with the first). A
+calibrator is rigid: the bench's out-of-plane moves of a specimen do not apply.
+
+Each frame is rendered through the camera (`appliance.sim.target.render_plane`, exact rays)
+from a texture of the plane, built anew for each position of the moving block from the
+analytic speckle pattern (`appliance.dic.synthetic`), so every displacement is exact to the
+texture's interpolation; then the camera adds shot and read noise and quantises to 8 bits, as
+the simulated camera does. The truth (`displacement_um`) only scores: the extensometer
+measures the frames.
 """
 
 from __future__ import annotations
@@ -36,7 +43,9 @@ from appliance.dic.synthetic import (
     fourier_shift,
     quantize,
 )
-from appliance.optics.camera_model import CameraModel, PlanePose
+from appliance.optics.camera_model import CameraModel
+from appliance.sim.bench import BenchErrors
+from appliance.sim.lens import BenchGeometry
 from appliance.sim.target import render_plane
 
 FloatArray = npt.NDArray[np.float64]
@@ -52,9 +61,9 @@ class SimCalibrator:
 
     Args:
         gauge_length_mm: distance between the blocks' centres (their lines) at zero, mm.
-        camera: the camera model (sensor size, lens).
-        pose: the specimen plane's pose in the camera frame; plane point (0, 0) lies midway
-            between the blocks, plane Y along the loading axis.
+        bench: the bench the camera sees the blocks through (`calibrator_bench`); plane point
+            (0, 0), midway between the blocks, on its optical axis, plane Y along the loading
+            axis.
         speckle_radius_mm: the coat's speckle radius, mm.
         block_mm: side of each square block, mm.
         line_mm: width of the dark line across each block's centre, mm.
@@ -66,14 +75,15 @@ class SimCalibrator:
         read_noise: read noise, grey levels (standard deviation).
         electrons_per_grey: conversion gain for the shot noise; 0 = no shot noise.
         background: grey level around the blocks.
+        frame_interval_s: time between frames, s (for the bench's drift, vibration, flicker).
+        exposure_s: each frame's exposure, s (for the flicker).
     """
 
     def __init__(
         self,
         *,
         gauge_length_mm: float,
-        camera: CameraModel,
-        pose: PlanePose,
+        bench: BenchGeometry,
         speckle_radius_mm: float,
         block_mm: float = 10.0,
         line_mm: float = 0.3,
@@ -84,6 +94,8 @@ class SimCalibrator:
         read_noise: float = 0.5,
         electrons_per_grey: float = 40.0,
         background: float = 20.0,
+        frame_interval_s: float = 5.0,
+        exposure_s: float = 0.002,
     ) -> None:
         if not gauge_length_mm > block_mm:
             raise ValueError(
@@ -92,8 +104,11 @@ class SimCalibrator:
         if not scale_error > -1.0:
             raise ValueError(f"scale_error must be > -1, got {scale_error}")
         self.gauge_length_mm = float(gauge_length_mm)
-        self.camera = camera
-        self.pose = pose
+        self.bench = bench
+        self.camera = camera = bench.camera
+        self.pose = pose = bench.pose
+        self.frame_interval_s = float(frame_interval_s)
+        self.exposure_s = float(exposure_s)
         self.block_mm = float(block_mm)
         self.line_mm = float(line_mm)
         self.travel_mm = float(travel_mm)
@@ -144,9 +159,19 @@ class SimCalibrator:
         texture = self._base.copy()
         centre = 0.5 * self.gauge_length_mm + self.displacement_um(self.reading_um) * 1e-3
         self._paint(texture, self._moving_coat, centre)
-        view = render_plane(
-            texture, self.texel_mm, self.origin_mm, self.pose, self._crop_camera, self.background
+        bench = self.bench
+        t_s = self._frames * self.frame_interval_s
+        drift = bench.drift(t_s)
+        shift_x, shift_y = bench.vibration_px(t_s)
+        scale = bench.scale_mm_per_px
+        origin = (
+            drift * self.origin_mm[0] + shift_x * scale,
+            drift * self.origin_mm[1] + shift_y * scale,
         )
+        view = render_plane(
+            texture, drift * self.texel_mm, origin, self.pose, self._crop_camera, self.background
+        )
+        view = view * bench.flicker_factor(t_s, t_s + self.exposure_s)
         seed = self.seed * 1_000_003 + self._frames
         self._frames += 1
         if self.electrons_per_grey > 0:
@@ -225,11 +250,22 @@ class SimCalibrator:
         return (x0, y0), cropped
 
 
-def telecentric_view(
-    sensor_size: tuple[int, int], scale_mm_per_px: float, distance_mm: float = 400.0
-) -> tuple[CameraModel, PlanePose]:
-    """The ideal bench's view: a distortion-free telecentric camera of `scale_mm_per_px`,
-    the plane square to it with plane point (0, 0) at the image centre."""
-    width, height = sensor_size
-    camera = CameraModel.ideal(width, height, 1.0 / scale_mm_per_px, telecentric=True)
-    return camera, PlanePose.facing(distance_mm)
+def calibrator_bench(
+    errors: BenchErrors,
+    *,
+    scale_mm_per_px: float,
+    object_distance_mm: float,
+    sensor_size: tuple[int, int],
+    seed: int = 0,
+) -> BenchGeometry:
+    """The bench a calibrator is seen through: `errors` (a `[sim] bench`) at the optics'
+    scale and object distance, plane point (0, 0) on the optical axis."""
+    return BenchGeometry(
+        errors,
+        scale_mm_per_px=scale_mm_per_px,
+        object_distance_mm=object_distance_mm,
+        sensor_size=sensor_size,
+        centre_mm=(0.0, 0.0),
+        thickness_mm=0.0,
+        seed=seed,
+    )

@@ -17,7 +17,8 @@ from appliance.run.verification import (
     series_directions,
     verify,
 )
-from appliance.sim.calibrator import SimCalibrator, telecentric_view
+from appliance.sim.calibrator import SimCalibrator, calibrator_bench
+from appliance.sim.world import ideal_bench
 
 SCALE_MM_PER_PX = 0.0566
 SENSOR = (256, 768)
@@ -26,11 +27,12 @@ STEPS = calibration_steps(1000.0, 20.0)
 
 
 def calibrator(scale_error: float, **noise) -> SimCalibrator:
-    camera, pose = telecentric_view(SENSOR, SCALE_MM_PER_PX)
+    bench = calibrator_bench(
+        ideal_bench(), scale_mm_per_px=SCALE_MM_PER_PX, object_distance_mm=400.0, sensor_size=SENSOR
+    )
     return SimCalibrator(
         gauge_length_mm=GAUGE_LENGTH_MM,
-        camera=camera,
-        pose=pose,
+        bench=bench,
         speckle_radius_mm=0.12,
         travel_mm=1.2,
         scale_error=scale_error,
