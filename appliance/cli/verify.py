@@ -145,6 +145,7 @@ def run_verify(args: argparse.Namespace) -> int:
         ),
         args.config,
     )
+    _check_options(args)
     requested = class_named(args.extensometer_class)
     facts: dict[str, Any] = {
         "software_version": __version__,
@@ -161,6 +162,21 @@ def run_verify(args: argparse.Namespace) -> int:
     json_path, html_path = write_verification(verification, args.out, facts)
     _print(verification, json_path, html_path)
     return 0 if verification.met else 1
+
+
+SIM_ONLY = ("bench", "material", "seed", "calibrator_error_percent", "calibrator_offset_um")
+"""Options of the simulated calibrator, refused with --readings."""
+
+
+def _check_options(args: argparse.Namespace) -> None:
+    """Refuse an option that has no meaning for the source chosen, naming it."""
+    if args.sim:
+        if args.display_step_um:
+            raise InputError("verify: --display-step-um applies to --readings only")
+        return
+    for name in SIM_ONLY:
+        if getattr(args, name) not in (None, 0.0):
+            raise InputError(f"verify: --{name.replace('_', '-')} applies to --sim only")
 
 
 def _nominal_gauge_length(config: Config, args: argparse.Namespace) -> float | None:

@@ -105,6 +105,8 @@ def test_readings_file_against_two_classes(tmp_path):
         (("--sim", "--range-um", "-5", "--out", "X"), "--range-um"),
         (("--sim", "--lower-um", "0", "--out", "X"), "--lower-um"),
         (("--sim", "--series", "0", "--out", "X"), "--series"),
+        (("--readings", "r.csv", "--bench", "harsh", "--out", "X"), "--bench applies to --sim"),
+        (("--sim", "--display-step-um", "1", "--out", "X"), "applies to --readings only"),
     ],
 )
 def test_bad_input_is_refused_in_one_line(tmp_path, args, message):
