@@ -382,6 +382,8 @@ def _resolution(data: VerificationData) -> tuple[float | None, float | None]:
     std = float(np.std(rest, ddof=1)) if rest.size >= 2 else None
     if rest.size == 0 and data.display_step_um <= 0:
         return None, std
+    if not np.all(np.isfinite(rest)):
+        return math.nan, std
     half_range = 0.5 * float(np.ptp(rest)) if rest.size else 0.0
     return max(data.display_step_um, half_range), std
 
@@ -401,7 +403,9 @@ def _resolution_criterion(
             break
     findings = []
     limits = requested.resolution_limit_um(readings)
-    if not (math.isfinite(resolution) and np.all(resolution <= limits)):
+    if not math.isfinite(resolution):
+        findings.append("resolution unknown: a reading at rest was not measured")
+    elif not np.all(resolution <= limits):
         tightest = float(limits.min())
         findings.append(
             f"resolution {resolution:.3g} um beyond class {requested.name}'s {tightest:.3g} um "

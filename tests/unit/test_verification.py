@@ -83,6 +83,8 @@ def test_resolution_is_half_the_range_at_rest_or_the_display_step():
     assert coarse.resolution_um == 0.8
     assert coarse.criteria["resolution"].best_class == "1"
     assert not coarse.met and "resolution 0.8 um" in coarse.findings[0]
+    lost = verify(VerificationData(points, (0.0, math.nan)), class_named("2"))
+    assert lost.achieved is None and "reading at rest was not measured" in lost.findings[0]
     unknown = verify(VerificationData(points), class_named("0.2"))
     assert not unknown.criteria["resolution"].assessed and unknown.met
 
