@@ -34,6 +34,7 @@ import math
 import cv2
 import numpy as np
 import numpy.typing as npt
+from scipy.interpolate import RectBivariateSpline
 
 from appliance.optics.camera_model import CameraModel, LensDistortion, PlanePose, PlaneProjection
 from appliance.sim.bench import SLACK_TRAVEL_MM, BenchErrors
@@ -42,6 +43,8 @@ from appliance.sim.deformation import AxialDeformation
 FloatArray = npt.NDArray[np.float64]
 
 _OUT_OF_PLANE_ITERATIONS = 4
+MAP_NODE_STEP_PX = 16
+"""Spacing of the nodes at which the lens is traced exactly for the remap, px."""
 
 
 class BenchGeometry:
@@ -108,6 +111,31 @@ class BenchGeometry:
         phases = np.random.default_rng(seed).uniform(0.0, 2.0 * math.pi, 2)
         self._vibration_phases = (float(phases[0]), float(phases[1]))
         self._maps: tuple[np.ndarray, np.ndarray] | None = None
+
+    def check_field(self) -> None:
+        """Check that the lens maps the sensor's field one to one.
+
+        Raises:
+            ValueError: the radial distortion folds over within the image corners, or a
+                border pixel has no ray (the distortion cannot be inverted there).
+        """
+        d = self.errors.distortion
+        width, height = self.sensor_size
+        corner = 0.5 * math.hypot(width - 1, height - 1) * self.scale_mm_per_px
+        r2 = np.linspace(0.0, 1.1 * corner / self.object_distance_mm, 256) ** 2
+        if np.any(1.0 + r2 * (3.0 * d.k1 + r2 * (5.0 * d.k2 + 7.0 * r2 * d.k3)) <= 0.0):
+            raise ValueError("the lens distortion folds over within the image")
+        if self.errors.needs_remap:
+            steps = np.linspace(0.0, 1.0, 65)
+            border = np.concatenate(
+                [
+                    np.column_stack([steps * (width - 1), np.zeros_like(steps)]),
+                    np.column_stack([steps * (width - 1), np.full_like(steps, height - 1)]),
+                    np.column_stack([np.zeros_like(steps), steps * (height - 1)]),
+                    np.column_stack([np.full_like(steps, width - 1), steps * (height - 1)]),
+                ]
+            )
+            self.ideal_of_sensor(border)
 
     @property
     def principal_point_px(self) -> tuple[float, float]:
@@ -245,15 +273,31 @@ class BenchGeometry:
 
     def maps(self) -> tuple[np.ndarray, np.ndarray]:
         """The remap from the sensor to the ideal grid: float32 (height, width) arrays of the
-        ideal-grid column and row each sensor pixel sees (computed once)."""
+        ideal-grid column and row each sensor pixel sees (computed once).
+
+        The lens is traced exactly on a grid of nodes every `MAP_NODE_STEP_PX` pixels and the
+        map interpolated between them by bicubic splines (the map is a smooth low-order
+        function: the interpolation is exact to about 1e-6 px, far below the float32 maps'
+        rounding of 1e-4 px).
+        """
         if self._maps is None:
             width, height = self.sensor_size
-            cols, rows = np.meshgrid(
-                np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64)
-            )
-            ideal = self.ideal_of_sensor(np.column_stack([cols.ravel(), rows.ravel()]))
-            self._maps = (
-                np.ascontiguousarray(ideal[:, 0].reshape(height, width), np.float32),
-                np.ascontiguousarray(ideal[:, 1].reshape(height, width), np.float32),
-            )
+            cols = np.arange(width, dtype=np.float64)
+            rows = np.arange(height, dtype=np.float64)
+            node_cols = _nodes(width)
+            node_rows = _nodes(height)
+            grid_cols, grid_rows = np.meshgrid(node_cols, node_rows)
+            ideal = self.ideal_of_sensor(np.column_stack([grid_cols.ravel(), grid_rows.ravel()]))
+            maps = []
+            for axis in (0, 1):
+                values = ideal[:, axis].reshape(node_rows.size, node_cols.size)
+                spline = RectBivariateSpline(node_rows, node_cols, values, kx=3, ky=3)
+                maps.append(np.ascontiguousarray(spline(rows, cols), np.float32))
+            self._maps = (maps[0], maps[1])
         return self._maps
+
+
+def _nodes(count: int) -> FloatArray:
+    """Node positions over 0 ... count - 1, every `MAP_NODE_STEP_PX` and the last."""
+    nodes = np.arange(0.0, count - 1, MAP_NODE_STEP_PX)
+    return np.append(nodes, float(count - 1)) if nodes.size >= 3 else np.linspace(0, count - 1, 4)

@@ -208,6 +208,8 @@ class SimWorld:
             )
         else:
             self.scene = BenchScene(self.machine.deformation_at, self.geometry, **view)
+            if self.bench.needs_remap:
+                self.geometry.maps()
         self.camera = camera_from_url(
             "sim://camera",
             scene=self.scene,
@@ -254,6 +256,24 @@ class SimWorld:
                 f"{MAX_TEXTURE_PIXELS / 1e6:.0f} MP (a coarser scale: a shorter focal length, "
                 "a longer object distance or larger pixels)"
             )
+        bench = bench_errors(
+            config.sim, (width, height), optics.object_distance_mm / optics.scale_mm_per_px
+        )
+        try:
+            BenchGeometry(
+                bench,
+                scale_mm_per_px=optics.scale_mm_per_px,
+                object_distance_mm=optics.object_distance_mm,
+                sensor_size=(width, height),
+                centre_mm=(0.0, 0.0),
+                thickness_mm=specimen.thickness_mm,
+            ).check_field()
+        except ValueError as exc:
+            raise InputError(
+                f"[sim] lens_k1, lens_k2, lens_p1, lens_p2: {exc} of {width} x {height} px "
+                f"at {optics.scale_mm_per_px:.3g} mm/px and {optics.object_distance_mm:g} mm "
+                "(smaller coefficients)"
+            ) from None
         world = cls(
             preset,
             optics=optics,
@@ -271,9 +291,7 @@ class SimWorld:
                 if config.sim.speed_change_after_s
                 else ()
             ),
-            bench=bench_errors(
-                config.sim, (width, height), optics.object_distance_mm / optics.scale_mm_per_px
-            ),
+            bench=bench,
         )
         duration_s = world.planned_duration_s
         if duration_s > MAX_TEST_DURATION_S:

@@ -276,3 +276,12 @@ def test_out_of_range_keys_are_refused_in_one_line(key, value):
         parse_config(f"[sim]\n{key} = {value}\n", "bench.toml")
     message = str(error.value)
     assert "\n" not in message and key in message and "bench.toml" in message
+
+
+def test_a_lens_that_folds_over_within_the_image_is_refused_in_one_line():
+    config = sim_config(bench="typical", lens_k1=-1.0, lens_k2=-1.0)
+    with pytest.raises(InputError) as error:
+        SimWorld.from_config(
+            config, dataclasses.replace(PRESETS["rubber"].optics, focal_length_mm=4.0)
+        )
+    assert "\n" not in str(error.value) and "lens_k1" in str(error.value)
