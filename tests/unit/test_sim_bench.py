@@ -105,6 +105,28 @@ def test_the_ideal_bench_is_the_plain_scene():
     assert world.specimen_plane.normal_tilt_deg == 0.0
 
 
+def test_the_ideal_bench_renders_bit_identically_to_the_plain_scene():
+    config = sim_config(sensor_width_px=256, sensor_height_px=512)
+    world = SimWorld.from_config(config, PRESETS["rubber"].optics)
+    length = world.specimen.overall_length_mm
+    plain = SpecimenScene(
+        world.machine.deformation_at,
+        scale_mm_per_px=PRESETS["rubber"].optics.scale_mm_per_px,
+        sensor_width=256,
+        sensor_height=512,
+        material_y_range_mm=(-0.5 * length, 0.5 * length),
+        half_width_mm=0.5 * world.specimen.end_width_mm,
+        centre_mm=world.scene.centre_mm,
+        coat=SpeckleCoat(radius_mm=PRESETS["rubber"].speckle_radius_mm, seed=config.sim.seed),
+    )
+    world.machine.start(world.speed_mm_min, 0.0)
+    region = Region(0, 0, 256, 512)
+    for start_s in (0.0, 2.0):
+        image, _ = world.scene.render(start_s, start_s + 0.01, region)
+        expected, _ = plain.render(start_s, start_s + 0.01, region)
+        assert np.array_equal(image, expected)
+
+
 def test_a_bench_without_errors_renders_as_the_plain_scene():
     moving = deformation(stretch=1.1, lateral=0.95, shift_mm=-1.0)
     plain, _ = plain_scene(lambda t: moving).render(0.0, 0.0, FULL)
