@@ -79,6 +79,11 @@ TRUTH_COLUMNS = ("truth_strain", "truth_elongation_mm", "strain_error")
 FETCH_TIMEOUT_S = 2.0
 """Timeout of a frame fetch (two frame periods when longer): a camera that delivers nothing
 for that long is in an outage (`appliance.run.loop`)."""
+SIM_FETCH_TIMEOUT_S = 20.0
+"""Timeout of a frame fetch in a simulation run as fast as possible: its camera renders each
+frame inside the fetch on a virtual clock, which through a bench's lens (`[sim] bench`) on a
+busy computer takes seconds; no frame is late there, so only a render that never ends is a
+hung call."""
 NO_HOOKS = RunHooks()
 
 
@@ -194,7 +199,10 @@ def run_test(
         state=RunStateMachine(on_transition=_transition_listener(recorder, hooks)),
         block_when_full=rig.block_when_full,
         start_speed_mm_min=rig.speed_mm_min if rig.commands else None,
-        fetch_timeout_s=max(FETCH_TIMEOUT_S, 2 * plan.frame_period_s),
+        fetch_timeout_s=max(
+            SIM_FETCH_TIMEOUT_S if rig.block_when_full else FETCH_TIMEOUT_S,
+            2 * plan.frame_period_s,
+        ),
         camera_outage_timeout_s=0.0 if simulate else config.camera.outage_timeout_s,
         device_listeners=_device_listeners(recorder, hooks, line),
         liveness_listeners=alive,
