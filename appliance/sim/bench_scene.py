@@ -206,6 +206,26 @@ class BenchScene(SpecimenScene):
         }
         return image, truth
 
+    def _exposure(
+        self, start_s: float, stop_s: float
+    ) -> tuple[list[float], list[AxialDeformation]]:
+        """The plain scene's time samples, more where the vibration moves the image further
+        than `max_sample_step_px` between them (its blur is integrated too)."""
+        times, deformations = super()._exposure(start_s, stop_s)
+        errors = self.geometry.errors
+        peak_speed_px_s = (
+            2.0 * math.pi * errors.vibration_frequency_hz * errors.vibration_px_rms * math.sqrt(2)
+        )
+        motion_px = peak_speed_px_s * (float(stop_s) - float(start_s))
+        count = min(self.max_time_samples, math.ceil(motion_px / self.max_sample_step_px - 1e-9))
+        if count <= len(times):
+            return times, deformations
+        step = (float(stop_s) - float(start_s)) / count
+        times = [float(start_s) + (i + 0.5) * step for i in range(count)]
+        deformations = [self._deformation_at(t) for t in times]
+        self._last_exposure = (float(start_s), float(stop_s), times, deformations)
+        return times, deformations
+
     def object_positions(
         self, material_points_mm: npt.ArrayLike, start_s: float, stop_s: float
     ) -> FloatArray:

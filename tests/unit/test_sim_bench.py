@@ -307,3 +307,14 @@ def test_a_lens_that_folds_over_within_the_image_is_refused_in_one_line():
             config, dataclasses.replace(PRESETS["rubber"].optics, focal_length_mm=4.0)
         )
     assert "\n" not in str(error.value) and "lens_k1" in str(error.value)
+
+
+def test_vibration_blurs_an_exposure_where_the_truth_averages_it():
+    scene = bench_scene(bench(vibration_px_rms=0.5, vibration_frequency_hz=20.0), seed=3)
+    assert len(scene.time_samples(0.0, 0.01)) == 4
+    reference, _ = scene.render(0.0, 0.0, FULL)
+    blurred, _ = scene.render(0.0, 0.01, FULL)
+    points = np.array([[100.0, 90.0], [100.0, 170.0]])
+    material = scene.material_points(points, 0.0)
+    found = track(reference, blurred, scene.image_positions(material, 0.0, 0.0))
+    np.testing.assert_allclose(found, scene.image_positions(material, 0.0, 0.01), atol=0.02)
