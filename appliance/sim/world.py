@@ -19,8 +19,14 @@ Presets (`PRESETS`):
 * metal: ISO 6892-1 flat specimen, steel, 10 mm/min, the same camera with a 35 mm lens at
   400 mm.
 
+The bench between the specimen and the sensor (`[sim] bench`, `appliance.sim.bench`): ideal
+(telecentric, nothing else: the plain `SpecimenScene`), or a lens with distortion and tilt,
+out-of-plane moves, flicker, vibration and drift (`appliance.sim.bench_scene.BenchScene`). The
+true camera and the specimen plane's pose are `SimWorld.lens_camera` and `specimen_plane`, for
+scoring only.
+
 `GaugeTruth` gives the true strain and elongation of gauge marks placed in the reference
-image, as the material points they were placed on.
+image, as the material points they were placed on: their distance in the specimen's plane, mm.
 """
 
 from __future__ import annotations
