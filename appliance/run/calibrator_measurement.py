@@ -109,20 +109,39 @@ class SeriesReader:
         return self.gauges.read(frame.positions, frame.measured).elongation_mm * 1e3
 
     def _measure_gauge_length(self, reference: np.ndarray, marks: list[np.ndarray]) -> float | None:
-        """The distance between the targets' lines on the reference frame, mm (on the
-        specimen plane with a calibration's projection); None when a line is not found."""
+        """The distance between the targets' lines on the reference frame, mm; None when a
+        line is not found. With a calibration's projection the lines are looked for on the
+        specimen plane (where they are straight, whatever the lens), else in the image."""
         calibration = self.setup.calibration
-        search_px = LINE_SEARCH_MM / calibration.scale_mm_per_px
-        lines = []
-        for mark in marks:
-            found = line_offset_px(reference, (mark[0], mark[1]), self.axis, search_px)
+        projection = calibration.projection
+        step_mm = calibration.scale_mm_per_px
+        search = math.ceil(LINE_SEARCH_MM / step_mm)
+        along = np.arange(-search, search + 1, dtype=np.float64)
+        across = np.arange(-LINE_BAND_PX, LINE_BAND_PX + 1, dtype=np.float64)
+        u, v = np.meshgrid(along, across, indexing="ij")
+        if projection is None:
+            centres = marks
+            axis = self.axis
+        else:
+            centres = list(projection.to_plane_mm(np.array(marks)))
+            axis = (centres[1] - centres[0]) / np.hypot(*(centres[1] - centres[0]))
+        ends = []
+        for centre in centres:
+            grid = np.stack(
+                [centre[0] + u * axis[0] - v * axis[1], centre[1] + u * axis[1] + v * axis[0]],
+                axis=-1,
+            )
+            if projection is None:
+                pixels = grid
+            else:
+                grid = centre + (grid - centre) * step_mm
+                pixels = projection.to_pixels(grid.reshape(-1, 2)).reshape(grid.shape)
+            found = _profile_offset(reference, pixels, along)
             if found is None:
                 return None
-            lines.append(mark + found * self.axis)
-        if calibration.projection is not None:
-            ends = calibration.projection.to_plane_mm(np.array(lines))
-            return float(np.hypot(*(ends[1] - ends[0])))
-        return float(np.hypot(*(lines[1] - lines[0]))) * calibration.scale_mm_per_px
+            ends.append(centre + found * (step_mm if projection is not None else 1.0) * axis)
+        length = float(np.hypot(*(ends[1] - ends[0])))
+        return length if projection is not None else length * step_mm
 
 
 def line_offset_px(
@@ -132,21 +151,34 @@ def line_offset_px(
     search_px: float,
     band_px: int = LINE_BAND_PX,
 ) -> float | None:
-    """Where a dark line across the axis lies near `centre_px`, px along the axis from it.
-
-    The image is sampled (bilinear) on a grid along the axis (+-`search_px`) and across it
-    (+-`band_px`) and averaged across into a profile. The line is the darkest run of the
-    profile: the samples darker than halfway between the profile's minimum and its median,
-    around the minimum; its position is their centroid weighted by the depth below the
-    median. None when the profile has no dip (a flat window).
-    """
+    """Where a dark line across the axis lies near `centre_px`, px along the axis from it
+    (`_profile_offset` on a grid of +-`search_px` along the axis and +-`band_px` across it);
+    None when there is no dark line."""
     along = np.arange(-math.ceil(search_px), math.ceil(search_px) + 1, dtype=np.float64)
     across = np.arange(-band_px, band_px + 1, dtype=np.float64)
     u, v = np.meshgrid(along, across, indexing="ij")
-    x = centre_px[0] + u * axis[0] - v * axis[1]
-    y = centre_px[1] + u * axis[1] + v * axis[0]
+    pixels = np.stack(
+        [centre_px[0] + u * axis[0] - v * axis[1], centre_px[1] + u * axis[1] + v * axis[0]],
+        axis=-1,
+    )
+    return _profile_offset(image, pixels, along)
+
+
+def _profile_offset(image: np.ndarray, pixels: np.ndarray, along: np.ndarray) -> float | None:
+    """The position, in the units of `along`, of a dark line in the image sampled at `pixels`
+    ((n_along, n_across, 2) x, y px; bilinear), whose rows lie at `along` across the line.
+
+    The samples are averaged across into a profile. The line is the run of samples around the
+    profile's minimum darker than halfway between the minimum and the profile's median; its
+    position is the midpoint of its two edges, each where the profile crosses that level
+    (linear interpolation). None when the profile has no dip or the run reaches the end of
+    the window.
+    """
     samples = ndimage.map_coordinates(
-        np.asarray(image, dtype=np.float64), [y, x], order=1, mode="nearest"
+        np.asarray(image, dtype=np.float64),
+        [pixels[..., 1], pixels[..., 0]],
+        order=1,
+        mode="nearest",
     )
     profile = samples.mean(axis=1)
     median = float(np.median(profile))
@@ -154,15 +186,19 @@ def line_offset_px(
     depth = median - float(profile[lowest])
     if not depth > 0:
         return None
-    dark = profile < median - 0.5 * depth
+    level = median - 0.5 * depth
     start = stop = lowest
-    while start > 0 and dark[start - 1]:
+    while start > 0 and profile[start - 1] < level:
         start -= 1
-    while stop < profile.size - 1 and dark[stop + 1]:
+    while stop < profile.size - 1 and profile[stop + 1] < level:
         stop += 1
-    start, stop = max(start - 1, 0), min(stop + 1, profile.size - 1)
-    weights = np.clip(median - profile[start : stop + 1], 0.0, None)
-    return float(np.sum(weights * along[start : stop + 1]) / np.sum(weights))
+    if start == 0 or stop == profile.size - 1:
+        return None
+    edges = []
+    for inside, outside in ((start, start - 1), (stop, stop + 1)):
+        fraction = (level - profile[inside]) / (profile[outside] - profile[inside])
+        edges.append(along[inside] + fraction * (along[outside] - along[inside]))
+    return 0.5 * (edges[0] + edges[1])
 
 
 @dataclass(frozen=True)

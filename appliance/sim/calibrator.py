@@ -3,9 +3,10 @@
 Two speckled blocks (`block_mm` square) lie in the specimen plane, their centres the nominal
 gauge length apart along the loading axis (the image's rows): the upper one fixed, the lower
 one carried by the calibrator's micrometer. Across each block's centre runs a dark line
-`line_mm` wide, the target the gauge length is measured on. The calibrator is set to an
-elongation and reports it (its reading, what the lab writes down as l_t); the block really
-moves by `displacement_um`, which differs from the reading by the calibrator's own error:
+`line_mm` wide on a light, unspeckled strip, the target the gauge length is measured on. The
+calibrator is set to an elongation and reports it (its reading, what the lab writes down as
+l_t); the block really moves by `displacement_um`, which differs from the reading by the
+calibrator's own error:
 
     displacement = reading / (1 + scale_error) + offset_error_um
 
@@ -54,6 +55,8 @@ TEXELS_PER_PX = 2
 """Texture texels per pixel of the image, each way."""
 LINE_GREY = 15.0
 """Grey level of the dark line across each block (8-bit scale)."""
+QUIET_GREY = 215.0
+"""Grey level of the unspeckled strip the line lies on (8-bit scale)."""
 
 
 class SimCalibrator:
@@ -67,6 +70,8 @@ class SimCalibrator:
         speckle_radius_mm: the coat's speckle radius, mm.
         block_mm: side of each square block, mm.
         line_mm: width of the dark line across each block's centre, mm.
+        quiet_mm: width of the light, unspeckled strip on each side of the line, mm (as a
+            printed target's quiet zone: the line's edges stand out of the speckle).
         travel_mm: the largest displacement the texture has room for, mm.
         scale_error: the calibrator's relative scale error (its reading over the true
             displacement, less one).
@@ -87,6 +92,7 @@ class SimCalibrator:
         speckle_radius_mm: float,
         block_mm: float = 10.0,
         line_mm: float = 0.3,
+        quiet_mm: float = 0.4,
         travel_mm: float = 5.0,
         scale_error: float = 0.0,
         offset_error_um: float = 0.0,
@@ -111,6 +117,7 @@ class SimCalibrator:
         self.exposure_s = float(exposure_s)
         self.block_mm = float(block_mm)
         self.line_mm = float(line_mm)
+        self.quiet_mm = float(quiet_mm)
         self.travel_mm = float(travel_mm)
         self.scale_error = float(scale_error)
         self.offset_error_um = float(offset_error_um)
@@ -206,8 +213,11 @@ class SimCalibrator:
         col0 = (texture.shape[1] - 1) // 2 - side // 2
         y = self._y[row0 : row0 + side] - centre_y_mm
         x = self._x[col0 : col0 + side] - self._x[col0 + side // 2]
+        strip = 0.5 * self.line_mm + self.quiet_mm
+        quiet = np.clip(0.5 + (strip - np.abs(y)) / self.texel_mm, 0.0, 1.0)
         line = np.clip(0.5 + (0.5 * self.line_mm - np.abs(y)) / self.texel_mm, 0.0, 1.0)
-        painted = coat + line[:, np.newaxis] * (LINE_GREY - coat)
+        painted = coat + quiet[:, np.newaxis] * (QUIET_GREY - coat)
+        painted = painted + line[:, np.newaxis] * (LINE_GREY - painted)
         cover_x = np.clip(0.5 + (half - np.abs(x)) / self.texel_mm, 0.0, 1.0)
         cover_y = np.clip(0.5 + (half - np.abs(y)) / self.texel_mm, 0.0, 1.0)
         cover = cover_y[:, np.newaxis] * cover_x[np.newaxis, :]
