@@ -92,7 +92,10 @@ def report_html(verification: Verification, facts: dict[str, Any]) -> str:
                 + f" at {worst.calibrator_um:g} um, series {worst.series}",
             )
         )
-    rows += [(key.replace("_", " "), str(value)) for key, value in facts.items()]
+    rows += [
+        (key.replace("_", " "), "none" if value is None else str(value))
+        for key, value in facts.items()
+    ]
     findings = "".join(f"<li>{html.escape(line)}</li>" for line in v.findings)
     parts = [
         "<!DOCTYPE html>",
