@@ -86,6 +86,26 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     clock.set_defaults(handler=_clock_sync)
 
     _add_soak(benches)
+    _add_optics(benches)
+
+
+def _add_optics(benches: argparse._SubParsersAction) -> None:
+    optics = benches.add_parser(
+        "optics",
+        help="camera calibration, measuring in the object plane and ISO 9513 classes on the "
+        "simulated benches",
+    )
+    optics.add_argument(
+        "--quick", action="store_true", help="fewer calibrations, shorter tests, one bench"
+    )
+    _add_out(optics, required=True)
+    optics.set_defaults(handler=_optics)
+
+
+def _optics(args: argparse.Namespace) -> int:
+    from appliance.bench.optics import run_optics_benchmark
+
+    return run_optics_benchmark(args.out, quick=args.quick)
 
 
 def _add_soak(benches: argparse._SubParsersAction) -> None:
