@@ -60,10 +60,10 @@ from appliance.run.disk_space import DiskReserve, check_free_space
 from appliance.run.drops import DropWarning
 from appliance.run.loop import DeviceEvent, LoopResult, MeasurementLoop, call_in_control
 from appliance.run.object_plane import (
-    calibration_facts,
     check_image_size,
     configured_calibration,
-    out_of_plane_bound,
+    image_size,
+    measurement_facts,
 )
 from appliance.run.outputs import RunFacts, RunHooks, RunOutput
 from appliance.run.progress import ProgressLine
@@ -144,7 +144,8 @@ def run_test(
     """
     alive = [hooks.on_alive] if hooks.on_alive is not None else []
     rig = call_in_control(lambda: rig_for(config, simulate=simulate), alive)
-    calibration = configured_calibration(config, rig.optics, _image_size(config, rig))
+    sensor = rig.world.camera.sensor_size if rig.world is not None else None
+    calibration = configured_calibration(config, rig.optics, image_size(config, sensor))
     plan = exposure_for(config, rig.optics, rig.speed_mm_min)
     call_in_control(warm_up_kernels, alive)
     line = ProgressLine(progress) if progress is not None else None
@@ -242,19 +243,6 @@ def run_test(
     if files.summary is not None:
         call_in_control(lambda: _write_summary(outcome, files.summary), alive)
     return outcome
-
-
-def _image_size(config: Config, rig: Rig) -> tuple[int, int] | None:
-    """(width, height) px of the images the test will take, when known before the camera
-    opens: the configured sensor region's, or the simulated camera's sensor; None for a real
-    camera's full sensor (checked on the reference frame)."""
-    region = config.camera.region()
-    if region is not None:
-        return (region.width, region.height)
-    if rig.world is not None:
-        width, height = rig.world.camera.sensor_size
-        return (int(width), int(height))
-    return None
 
 
 def _prepare_directories(files: OutputFiles, config: Config) -> DiskReserve | None:
@@ -461,16 +449,7 @@ def _run_facts(
         "speed_mm_min": rig.speed_mm_min,
         "gauge_length_mm": rig.gauge_length_mm,
         "scale_mm_per_px": calibration.scale_mm_per_px,
-        **calibration_facts(calibration),
-        **(
-            {"nominal_scale_mm_per_px": rig.optics.scale_mm_per_px}
-            if calibration.in_object_plane
-            else {}
-        ),
-        "object_distance_mm": rig.optics.object_distance_mm,
-        **out_of_plane_bound(
-            calibration, rig.optics.object_distance_mm, rig.gauge_length_mm
-        ).facts(),
+        **measurement_facts(calibration, rig.optics, rig.gauge_length_mm),
         "exposure_us": exposure_us,
         "frame_rate_hz": 1.0 / plan.frame_period_s,
         "blur_px_at_crosshead_speed": plan.blur_px,

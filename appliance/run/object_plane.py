@@ -93,6 +93,18 @@ def calibration_file(
     return Calibration.object_plane(camera, name)
 
 
+def image_size(config: Config, sensor_size: tuple[int, int] | None) -> tuple[int, int] | None:
+    """(width, height) px of the images a test will take, when known before the camera opens:
+    the configured sensor region's, else `sensor_size` (a simulated camera's sensor); None
+    for a real camera's full sensor (checked on the reference frame, `check_image_size`)."""
+    region = config.camera.region()
+    if region is not None:
+        return (region.width, region.height)
+    if sensor_size is not None:
+        return (int(sensor_size[0]), int(sensor_size[1]))
+    return None
+
+
 def check_image_size(calibration: Calibration, width_px: int, height_px: int) -> None:
     """Refuse images of another size than the calibration's sensor (one line naming the file).
 
@@ -186,6 +198,21 @@ def out_of_plane_bound(
     measured_um = ((1 + STRAIN_FOR_CLASS) * (1 + false_strain) - 1) * gauge_length_mm * 1e3
     allowed = best_class([measured_um], [true_um]) if math.isfinite(measured_um) else None
     return OutOfPlaneBound(motion_mm, z, source, false_strain, allowed)
+
+
+def measurement_facts(
+    calibration: Calibration, optics: Optics, gauge_length_mm: float
+) -> dict[str, Any]:
+    """A test's facts of how it measures: `calibration_facts`, the thin-lens scale when
+    measured in the object plane (`nominal_scale_mm_per_px`), the thin-lens stand-off
+    (`object_distance_mm`) and the out-of-plane bound over `gauge_length_mm`."""
+    nominal = {"nominal_scale_mm_per_px": optics.scale_mm_per_px}
+    return {
+        **calibration_facts(calibration),
+        **(nominal if calibration.in_object_plane else {}),
+        "object_distance_mm": optics.object_distance_mm,
+        **out_of_plane_bound(calibration, optics.object_distance_mm, gauge_length_mm).facts(),
+    }
 
 
 def calibration_facts(calibration: Calibration) -> dict[str, Any]:
