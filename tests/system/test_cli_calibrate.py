@@ -130,7 +130,7 @@ def test_bad_input_is_refused_in_one_line(calibrated, tmp_path):
         "--min-coverage",
     )
     _refused(
-        extensometer(*images[:4], *OPTIONS, "--out", out, "--max-rms-px", "0.001"),
+        extensometer(*images, *OPTIONS, "--out", out, "--max-rms-px", "0.001"),
         "above the limit 0.001 px (--max-rms-px)",
     )
     _refused(
