@@ -115,7 +115,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "--max-scale-change-percent",
         type=arguments.within(float, 0.0, 100.0, above=True),
         default=100.0 * CheckLimits.max_scale_change,
-        help="--check: largest change of the scale at the image centre, % "
+        help="--check: largest change of the scale at the image centre, %% "
         f"({100.0 * CheckLimits.max_scale_change:g})",
     )
     parser.add_argument("--json", action="store_true", help="print JSON on stdout")
