@@ -12,9 +12,10 @@ Three kinds, each `COLS x ROWS` and one pitch `square_mm`:
   `square_mm`, diameter half the spacing (`CIRCLE_DIAMETER_FRACTION`), all visible. The
   grid is symmetric (not OpenCV's asymmetric grid): a view turned by 180 degrees numbers the
   circles from the other end, which changes the target's frame in that view but neither the
-  intrinsics nor the scale. The centre of a tilted circle's image is not the image of its centre: on the
-  simulated bench (7 mm circles at 400 mm, tilted 32..40 degrees) the detected centres lie
-  0.08..0.10 px RMS from the truth, a bias the calibration absorbs into each view's pose.
+  intrinsics nor the scale. The centre of a tilted circle's image is not the image of its
+  centre: on the simulated bench (7 mm circles at 400 mm, tilted 32..40 degrees) the detected
+  centres lie 0.08..0.10 px RMS from the truth, a bias the calibration absorbs into each
+  view's pose.
 
 Target frame (OpenCV's ChArUco convention, shared by all three): origin at the board's top-left
 corner (the outer corner of the first square; for circles, one spacing up and left of the
