@@ -2,15 +2,19 @@
 
     extensometer calibrate IMG [IMG ...] --target charuco --squares COLSxROWS --square-mm S
                            [--marker-mm M] [--dictionary DICT_5X5_100] [--plane IMG]
-                           --out FILE.json
+                           [--telecentric [--object-distance-mm Z]] --out FILE.json
     extensometer calibrate --check FILE.json IMG ...
 
 The calibration (`appliance.optics.target_calibration`) fits a pinhole camera with five
 Brown-Conrady coefficients to the target's corners in every image, takes the target's surface
 in the `--plane` image (default the first) as the specimen plane, and writes the calibration
-file. `--check` solves the target's pose in each image under the stored intrinsics and says
-whether the calibration still fits: exit 0 fit, 1 not fit. Bad input, or a calibration that
-falls short of its limits, ends with one line and exit status 2.
+file. `--telecentric` fits a telecentric (orthographic) camera instead (fx, fy in px per mm,
+the same distortion model, fitted with scipy: `appliance.optics.telecentric_calibration`); the
+planes' distance is not observable through such a lens and is recorded as
+`--object-distance-mm` (0 unless given). `--check` solves the target's pose in each image
+under the stored intrinsics (a telecentric camera's too) and says whether the calibration
+still fits: exit 0 fit, 1 not fit. Bad input, or a calibration that falls short of its
+limits, ends with one line and exit status 2.
 """
 
 from __future__ import annotations
@@ -106,7 +110,16 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--telecentric",
         action="store_true",
-        help="a telecentric lens (refused: OpenCV has no telecentric camera model)",
+        help="a telecentric lens: fit an orthographic camera (fx, fy in px per mm) with the "
+        "same distortion model",
+    )
+    parser.add_argument(
+        "--object-distance-mm",
+        type=arguments.within(float, 0.0, 1e5),
+        default=0.0,
+        metavar="Z",
+        help="--telecentric: the nominal distance recorded for the specimen plane, mm (0); "
+        "a telecentric lens cannot observe it",
     )
     parser.add_argument(
         "--check", metavar="FILE", help="check the calibration FILE against the images"
@@ -134,11 +147,6 @@ def run_calibrate(args: argparse.Namespace) -> int:
     ):
         if value is None:
             raise InputError(f"calibrate: {option} is required (or --check FILE)")
-    if args.telecentric:
-        raise InputError(
-            "calibrate: --telecentric is not supported: OpenCV's calibration fits a pinhole "
-            "camera only (calibrate a telecentric lens's scale with a calibrator)"
-        )
     try:
         target = CalibrationTarget(
             args.target,
@@ -173,6 +181,8 @@ def run_calibrate(args: argparse.Namespace) -> int:
         limits=CalibrationLimits(args.max_rms_px, args.min_coverage),
         software_version=appliance.__version__,
         created_utc=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        telecentric=args.telecentric,
+        object_distance_mm=args.object_distance_mm,
     )
     save_calibration(calibration, Path(args.out))
     if args.json:
@@ -188,8 +198,9 @@ def run_calibrate(args: argparse.Namespace) -> int:
     )
     worst = int(np.argmax(calibration.view_errors_px))
     print(f"target        {target.describe()}, {len(views)} views")
+    unit, kind = ("px/mm", "telecentric, ") if camera.telecentric else ("px", "")
     print(
-        f"camera        fx {camera.fx_px:.2f} px  fy {camera.fy_px:.2f} px  "
+        f"camera        {kind}fx {camera.fx_px:.4f} {unit}  fy {camera.fy_px:.4f} {unit}  "
         f"cx {camera.cx_px:.2f} px  cy {camera.cy_px:.2f} px"
     )
     print(f"distortion    k1 {k1:.5g}  k2 {k2:.5g}  p1 {p1:.5g}  p2 {p2:.5g}  k3 {k3:.5g}")
@@ -199,9 +210,12 @@ def run_calibrate(args: argparse.Namespace) -> int:
         f"{views[worst].name} {calibration.view_errors_px[worst]:.3f} px"
     )
     print(f"coverage      {calibration.coverage_fraction:.0%} of the field")
+    distance = f"{calibration.plane.translation_mm[2]:.1f} mm away"
+    if camera.telecentric:
+        distance += " (nominal)"
     print(
-        f"plane         {views[plane_index].name}: {calibration.plane.translation_mm[2]:.1f} mm "
-        f"away, tilted {calibration.plane.normal_tilt_deg:.2f} deg"
+        f"plane         {views[plane_index].name}: {distance}, tilted "
+        f"{calibration.plane.normal_tilt_deg:.2f} deg"
     )
     print(
         f"scale         {calibration.scale_mm_per_px:.6f} mm/px at the image centre, "

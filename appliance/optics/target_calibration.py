@@ -26,16 +26,23 @@ Calibration (`calibrate`):
 
 Refusals (`InputError`, one line): fewer than `MIN_VIEWS` views, a target not found, images of
 different sizes, a coverage below `CalibrationLimits.min_coverage`, an RMS reprojection error
-above `CalibrationLimits.max_rms_px`, and a telecentric calibration (OpenCV has no telecentric
-model).
+above `CalibrationLimits.max_rms_px`.
+
+Telecentric lens (`telecentric=True`): the same checks, then steps 2 to 4 are
+`appliance.optics.telecentric_calibration.fit_telecentric` (an orthographic camera with
+Brown-Conrady distortion fitted with scipy, as OpenCV has none); every plane's distance is the
+nominal `object_distance_mm` (not observable through a telecentric lens). The field check
+solves a telecentric camera's poses with `telecentric_pose`.
 
 Field check (`check_calibration`): the target's pose in each image is solved under the stored
 intrinsics; the reprojection RMS now and the scale at the image centre now, against the stored
-scale, decide whether the calibration still fits the camera.
+scale, decide whether the calibration still fits the camera. A telecentric lens's scale does
+not change with the distance: its scale now is taken with the magnification freed.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -48,6 +55,11 @@ from appliance.errors import InputError
 from appliance.optics.calibration_file import CameraCalibration
 from appliance.optics.calibration_target import CalibrationTarget, Detection
 from appliance.optics.camera_model import CameraModel, LensDistortion, PlanePose, PlaneProjection
+from appliance.optics.telecentric_calibration import (
+    fit_telecentric,
+    telecentric_magnification,
+    telecentric_pose,
+)
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -124,6 +136,7 @@ def calibrate(
     software_version: str = "",
     created_utc: str = "",
     telecentric: bool = False,
+    object_distance_mm: float = 0.0,
 ) -> CameraCalibration:
     """Calibrate the camera from views of a planar target.
 
@@ -133,18 +146,15 @@ def calibrate(
         plane_index: the view whose target pose is the specimen plane.
         limits: what the calibration must achieve.
         software_version, created_utc: recorded in the calibration.
-        telecentric: a telecentric lens (refused: OpenCV has no telecentric model).
+        telecentric: a telecentric lens (`fit_telecentric`).
+        object_distance_mm: a telecentric lens: the nominal distance of the planes (their
+            tz, not observable), mm.
 
     Raises:
-        InputError: too few views, images of different sizes, poor coverage, an RMS error
-            above the limit, or a telecentric lens.
+        InputError: too few views, images of different sizes, poor coverage, or an RMS error
+            above the limit.
     """
     limits = limits or CalibrationLimits()
-    if telecentric:
-        raise InputError(
-            "--telecentric: not supported: OpenCV's calibration fits a pinhole camera only; "
-            "calibrate a telecentric lens's scale with a calibrator instead"
-        )
     if len(views) < MIN_VIEWS:
         raise InputError(
             f"{len(views)} view(s) of the target, at least {MIN_VIEWS} needed (each view of a "
@@ -165,16 +175,23 @@ def calibrate(
             f"{limits.min_coverage:.0%} needed (--min-coverage): add views near the edges "
             "and corners"
         )
+    if telecentric:
+        return _calibrate_telecentric(
+            views,
+            target,
+            plane_index,
+            limits,
+            object_distance_mm,
+            coverage,
+            software_version,
+            created_utc,
+        )
     objects = [_object_points(target, view.detection) for view in views]
     images = [view.detection.image_px.astype(np.float32).reshape(-1, 1, 2) for view in views]
     rms, matrix, distortion, rvecs, tvecs, _, _, view_errors = cv2.calibrateCameraExtended(
         objects, images, size, None, None, flags=CALIBRATION_FLAGS, criteria=_CRITERIA
     )
-    if not (math.isfinite(rms) and rms <= limits.max_rms_px):
-        raise InputError(
-            f"RMS reprojection error {rms:.3f} px, above the limit {limits.max_rms_px:g} px "
-            "(--max-rms-px): check the target's size, focus and that the views are sharp"
-        )
+    _check_rms(rms, limits)
     camera = CameraModel(
         size[0],
         size[1],
@@ -209,13 +226,70 @@ def calibrate(
     )
 
 
+def _check_rms(rms: float, limits: CalibrationLimits) -> None:
+    if not (math.isfinite(rms) and rms <= limits.max_rms_px):
+        raise InputError(
+            f"RMS reprojection error {rms:.3f} px, above the limit {limits.max_rms_px:g} px "
+            "(--max-rms-px): check the target's size, focus and that the views are sharp"
+        )
+
+
+def _calibrate_telecentric(
+    views: Sequence[View],
+    target: CalibrationTarget,
+    plane_index: int,
+    limits: CalibrationLimits,
+    object_distance_mm: float,
+    coverage: float,
+    software_version: str,
+    created_utc: str,
+) -> CameraCalibration:
+    try:
+        fit = fit_telecentric(
+            [target.object_points_mm[view.detection.ids] for view in views],
+            [view.detection.image_px for view in views],
+            views[0].size_px,
+            plane_index=plane_index,
+            object_distance_mm=object_distance_mm,
+        )
+    except ValueError as exc:
+        raise InputError(f"telecentric calibration failed: {exc}") from None
+    _check_rms(fit.rms_px, limits)
+    document = target.to_document()
+    document["plane_image"] = views[plane_index].name
+    return CameraCalibration(
+        camera=fit.camera,
+        plane=fit.poses[plane_index],
+        scale_mm_per_px=fit.scale_mm_per_px,
+        scale_uncertainty_mm_per_px=fit.scale_uncertainty_mm_per_px,
+        rms_reprojection_px=fit.rms_px,
+        view_errors_px=fit.view_errors_px,
+        coverage_fraction=coverage,
+        target=document,
+        software_version=software_version,
+        created_utc=created_utc,
+    )
+
+
 def solve_pose(
     camera: CameraModel,
     target: CalibrationTarget,
     detection: Detection,
     guess: tuple[npt.ArrayLike, npt.ArrayLike] | None = None,
 ) -> PlanePose:
-    """The target's pose under `camera`'s intrinsics (`cv2.solvePnP`, iterative)."""
+    """The target's pose under `camera`'s intrinsics (`cv2.solvePnP`, iterative; a
+    telecentric camera: `telecentric_pose`, the distance from `guess` or 0)."""
+    if camera.telecentric:
+        distance_mm = 0.0 if guess is None else float(np.ravel(guess[1])[2])
+        try:
+            return telecentric_pose(
+                camera,
+                target.object_points_mm[detection.ids],
+                detection.image_px,
+                object_distance_mm=distance_mm,
+            )
+        except ValueError as exc:
+            raise InputError(f"the target's pose could not be solved ({exc})") from None
     objects = _object_points(target, detection).astype(np.float64)
     images = detection.image_px.reshape(-1, 1, 2)
     distortion = camera.distortion.coefficients
@@ -304,11 +378,34 @@ def check_calibration(
             )
         pose = solve_pose(camera, target, view.detection)
         rms = reprojection_rms_px(camera, target, view.detection, pose)
-        scale = PlaneProjection(camera, pose).scale_mm_per_px(centre)
+        scale = _scale_now(camera, target, view.detection, pose, centre)
         change = scale / calibration.scale_mm_per_px - 1.0
         fit = rms <= limits.max_rms_px and abs(change) <= limits.max_scale_change
         results.append(CheckedView(view.name, rms, scale, change, fit))
     return results
+
+
+def _scale_now(
+    camera: CameraModel,
+    target: CalibrationTarget,
+    detection: Detection,
+    pose: PlanePose,
+    centre: tuple[float, float],
+) -> float:
+    """The scale at the image centre on the check view's plane; a telecentric camera's with
+    its magnification freed (`telecentric_magnification`)."""
+    if not camera.telecentric:
+        return PlaneProjection(camera, pose).scale_mm_per_px(centre)
+    try:
+        pose, magnification = telecentric_magnification(
+            camera, target.object_points_mm[detection.ids], detection.image_px
+        )
+    except ValueError as exc:
+        raise InputError(f"the target's pose could not be solved ({exc})") from None
+    now = dataclasses.replace(
+        camera, fx_px=camera.fx_px * magnification, fy_px=camera.fy_px * magnification
+    )
+    return PlaneProjection(now, pose).scale_mm_per_px(centre)
 
 
 def target_from_document(document: object, source: str) -> CalibrationTarget:
