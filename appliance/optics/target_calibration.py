@@ -226,11 +226,13 @@ def calibrate(
     )
 
 
-def _check_rms(rms: float, limits: CalibrationLimits) -> None:
+def _check_rms(rms: float, limits: CalibrationLimits, *, telecentric: bool = False) -> None:
     if not (math.isfinite(rms) and rms <= limits.max_rms_px):
+        hint = " (or the lens has perspective: calibrate without --telecentric)"
         raise InputError(
             f"RMS reprojection error {rms:.3f} px, above the limit {limits.max_rms_px:g} px "
             "(--max-rms-px): check the target's size, focus and that the views are sharp"
+            + (hint if telecentric else "")
         )
 
 
@@ -254,7 +256,7 @@ def _calibrate_telecentric(
         )
     except ValueError as exc:
         raise InputError(f"telecentric calibration failed: {exc}") from None
-    _check_rms(fit.rms_px, limits)
+    _check_rms(fit.rms_px, limits, telecentric=True)
     document = target.to_document()
     document["plane_image"] = views[plane_index].name
     return CameraCalibration(

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from appliance.cli import main
+from appliance.errors import InputError
 from appliance.optics.calibration_file import load_calibration, save_calibration
 from appliance.optics.calibration_target import CalibrationTarget
 from appliance.optics.camera_model import CameraModel, LensDistortion, PlanePose, PlaneProjection
@@ -131,6 +132,18 @@ def test_a_noise_free_fit_is_exact():
     assert pose.translation_mm[2] == 7.0
     with pytest.raises(ValueError, match="at least 4"):
         fit_telecentric([objects[0][:3]] * 3, [pixels[0][:3]] * 3, (WIDTH, HEIGHT))
+
+
+def test_views_through_a_lens_with_perspective_are_refused_as_telecentric():
+    pinhole = CameraModel.ideal(WIDTH, HEIGHT, 2545.0, distortion=LensDistortion(k1=-0.05))
+    target = CalibrationTarget("charuco", 10, 6, 15.0)
+    poses = calibration_poses(pinhole, target, 9, distance_mm=400.0, seed=1)
+    views = [
+        find_target(target, render_target(target, p, pinhole, look=LOOK, seed=k), f"v{k}")
+        for k, p in enumerate(poses)
+    ]
+    with pytest.raises(InputError, match=r"RMS reprojection error .* without --telecentric"):
+        calibrate(views, target, telecentric=True)
 
 
 def test_the_field_check_passes_a_fresh_view_and_fails_a_changed_magnification(telecentric):
