@@ -134,8 +134,8 @@ def test_bad_input_is_refused_in_one_line(calibrated, tmp_path):
         "above the limit 0.001 px (--max-rms-px)",
     )
     _refused(
-        extensometer(*images[:4], *OPTIONS, "--out", out, "--telecentric"),
-        "--telecentric is not supported",
+        extensometer(*images, *OPTIONS, "--out", out, "--telecentric"),
+        "calibrate without --telecentric",
     )
     _refused(extensometer(*images[:4], "--squares", "10x6", "--out", out), "--target is required")
     _refused(
