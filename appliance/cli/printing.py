@@ -10,9 +10,12 @@ from appliance.run.summary import RunOutcome
 
 
 def print_summary(outcome: RunOutcome, stream: TextIO = sys.stdout) -> None:
-    """A run's or a replay's summary as aligned human-readable lines."""
+    """A run's or a replay's summary as aligned human-readable lines; a fact the run does not
+    have (null in summary.json) shows as `-`."""
     for key, value in outcome.as_dict().items():
-        if isinstance(value, float):
+        if value is None:
+            value = "-"
+        elif isinstance(value, float):
             value = f"{value:.6g}"
         stream.write(f"{key:38s} {value}\n")
 
