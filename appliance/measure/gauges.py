@@ -112,15 +112,11 @@ class Gauge:
             positions: (n, 2) current positions (x, y) of all tracked points.
             valid: (n,) mask of points that may be used; None = all.
         """
-        ends = []
-        for mark in (self.first, self.second):
-            index = np.asarray(mark)
-            if valid is not None:
-                index = index[valid[index]]
-            if index.size == 0:
-                return math.nan
-            ends.append(positions[index].mean(axis=0))
-        return float(np.hypot(*(ends[1] - ends[0])))
+        indices = self._usable_points(valid)
+        if indices is None:
+            return math.nan
+        first, second = (positions[index].mean(axis=0) for index in indices)
+        return float(np.hypot(*(second - first)))
 
     def length_mm(
         self,
@@ -137,14 +133,9 @@ class Gauge:
             projection: pixels to mm on the plane.
             valid: (n,) mask of points that may be used; None = all.
         """
-        indices = []
-        for mark in (self.first, self.second):
-            index = np.asarray(mark)
-            if valid is not None:
-                index = index[valid[index]]
-            if index.size == 0:
-                return math.nan
-            indices.append(index)
+        indices = self._usable_points(valid)
+        if indices is None:
+            return math.nan
         pixels = positions[np.concatenate(indices)]
         if not np.all(np.isfinite(pixels)):
             return math.nan
@@ -155,6 +146,19 @@ class Gauge:
         split = len(indices[0])
         first, second = plane[:split].mean(axis=0), plane[split:].mean(axis=0)
         return float(np.hypot(*(second - first)))
+
+    def _usable_points(self, valid: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
+        """The indices of each mark's points that `valid` allows (all when None); None when a
+        mark has none."""
+        indices = []
+        for mark in (self.first, self.second):
+            index = np.asarray(mark)
+            if valid is not None:
+                index = index[valid[index]]
+            if index.size == 0:
+                return None
+            indices.append(index)
+        return indices[0], indices[1]
 
 
 @dataclass(frozen=True)
