@@ -55,6 +55,7 @@ from appliance.errors import InputError
 from appliance.optics.calibration_file import CameraCalibration
 from appliance.optics.calibration_target import CalibrationTarget, Detection
 from appliance.optics.camera_model import CameraModel, LensDistortion, PlanePose, PlaneProjection
+from appliance.optics.fit_uncertainty import fit_covariance, propagated_uncertainty
 from appliance.optics.telecentric_calibration import (
     fit_telecentric,
     telecentric_magnification,
@@ -463,9 +464,7 @@ def _scale_uncertainty(
         blocks.append(block)
     jacobian = np.vstack(blocks)
     residual = np.concatenate(residuals)
-    dof = max(1, len(residual) - n_params)
-    variance = float(residual @ residual) / dof
-    covariance = variance * np.linalg.pinv(jacobian.T @ jacobian)
+    covariance = fit_covariance(jacobian, residual)
     parameters = np.concatenate(
         [
             [camera.fx_px, camera.fy_px, camera.cx_px, camera.cy_px],
@@ -489,12 +488,4 @@ def _scale_uncertainty(
         pose = PlanePose.from_arrays(values[9:12], values[12:15])
         return PlaneProjection(model, pose).scale_mm_per_px(centre)
 
-    gradient = np.zeros(len(parameters))
-    for i in range(len(parameters)):
-        step = 1e-6 * max(1.0, abs(parameters[i]))
-        up, down = parameters.copy(), parameters.copy()
-        up[i] += step
-        down[i] -= step
-        gradient[i] = (scale_of(up) - scale_of(down)) / (2.0 * step)
-    block = covariance[np.ix_(columns, columns)]
-    return float(math.sqrt(max(0.0, gradient @ block @ gradient)))
+    return propagated_uncertainty(scale_of, parameters, covariance[np.ix_(columns, columns)])

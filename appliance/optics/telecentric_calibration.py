@@ -53,6 +53,7 @@ import numpy.typing as npt
 from scipy.optimize import least_squares
 
 from appliance.optics.camera_model import CameraModel, LensDistortion, PlanePose, PlaneProjection
+from appliance.optics.fit_uncertainty import fit_covariance, propagated_uncertainty
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -347,9 +348,7 @@ def _scale_uncertainty(
     centre: tuple[float, float],
 ) -> float:
     """Standard uncertainty of the scale at `centre`, propagated from the fit's covariance."""
-    dof = max(1, len(residual) - len(values))
-    variance = float(residual @ residual) / dof
-    covariance = variance * np.linalg.pinv(jacobian.T @ jacobian)
+    covariance = fit_covariance(jacobian, residual)
     first = _INTRINSICS + _PER_VIEW * plane_index
     columns = list(range(_INTRINSICS)) + list(range(first, first + _PER_VIEW))
 
@@ -358,12 +357,11 @@ def _scale_uncertainty(
         pose = _pose(parameters[first : first + _PER_VIEW], 0.0)
         return PlaneProjection(camera, pose).scale_mm_per_px(centre)
 
-    gradient = np.zeros(len(columns))
-    for i, column in enumerate(columns):
-        step = 1e-6 * max(1.0, abs(values[column]))
-        up, down = values.copy(), values.copy()
-        up[column] += step
-        down[column] -= step
-        gradient[i] = (scale_of(up) - scale_of(down)) / (2.0 * step)
-    block = covariance[np.ix_(columns, columns)]
-    return float(math.sqrt(max(0.0, gradient @ block @ gradient)))
+    def scale_of_fitted(fitted: FloatArray) -> float:
+        parameters = values.copy()
+        parameters[columns] = fitted
+        return scale_of(parameters)
+
+    return propagated_uncertainty(
+        scale_of_fitted, values[columns], covariance[np.ix_(columns, columns)]
+    )
