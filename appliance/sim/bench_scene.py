@@ -35,7 +35,7 @@ import numpy.typing as npt
 from appliance.dic.bspline import PAD, interpolate, spline_coefficients
 from appliance.sim.deformation import AxialDeformation
 from appliance.sim.lens import BenchGeometry
-from appliance.sim.scene import SpecimenScene
+from appliance.sim.scene import SpecimenScene, add_time_sample
 from hal.camera.base import Region
 
 FloatArray = npt.NDArray[np.float64]
@@ -61,48 +61,6 @@ def _remap(
             y = min(max(map_y[r, c] - v0, 0.0), y_max)
             out[r, c] = interpolate(coefficients, x, y)
     return out
-
-
-@numba.njit(parallel=True, cache=True)
-def _add_scaled_sample(
-    out: FloatArray,
-    weight: float,
-    coefficients: np.ndarray,
-    row_ty: FloatArray,
-    row_inv_stretch: FloatArray,
-    row_half_width_mm: FloatArray,
-    row_textured: npt.NDArray[np.bool_],
-    row_pixel_mm: FloatArray,
-    col_offset_px: FloatArray,
-    x_centre_mm: float,
-    x_origin_texels: float,
-    inv_texel_mm: float,
-    background: float,
-) -> None:
-    """``out += weight * (one time sample)`` where row r sees x = x_centre + offset[c] * size[r]."""
-    rows, cols = out.shape
-    tx_max = coefficients.shape[1] - 2 * PAD - 1.0
-    ty_max = coefficients.shape[0] - 2 * PAD - 1.0
-    for r in numba.prange(rows):
-        if not row_textured[r]:
-            for c in range(cols):
-                out[r, c] += weight * background
-            continue
-        ty = min(max(row_ty[r], 0.0), ty_max)
-        half_width = row_half_width_mm[r]
-        to_texels = row_inv_stretch[r] * inv_texel_mm
-        size = row_pixel_mm[r]
-        inv_size = 1.0 / size
-        for c in range(cols):
-            x = x_centre_mm + col_offset_px[c] * size
-            cover = 0.5 + (half_width - abs(x)) * inv_size
-            if cover <= 0.0:
-                value = background
-            else:
-                tx = min(max(x * to_texels - x_origin_texels, 0.0), tx_max)
-                coat = interpolate(coefficients, tx, ty)
-                value = coat if cover >= 1.0 else background + cover * (coat - background)
-            out[r, c] += weight * value
 
 
 class BenchScene(SpecimenScene):
@@ -168,7 +126,7 @@ class BenchScene(SpecimenScene):
             row_y, row_pixel_mm = geometry.object_rows(deformation, t, rows)
             Y = deformation.material_y(row_y)
             stretch = deformation.lateral_stretch_at(Y)
-            _add_scaled_sample(
+            add_time_sample(
                 ideal,
                 weight,
                 self._coefficients,

@@ -139,7 +139,7 @@ class SpeckleCoat:
 
 
 @numba.njit(parallel=True, cache=True)
-def _add_time_sample(
+def add_time_sample(
     out: FloatArray,
     weight: float,
     coefficients: np.ndarray,
@@ -147,13 +147,18 @@ def _add_time_sample(
     row_inv_stretch: FloatArray,
     row_half_width_mm: FloatArray,
     row_textured: npt.NDArray[np.bool_],
-    col_x_mm: FloatArray,
+    row_pixel_mm: FloatArray,
+    col_offset_px: FloatArray,
+    x_centre_mm: float,
     x_origin_texels: float,
     inv_texel_mm: float,
-    inv_scale_mm: float,
     background: float,
 ) -> None:
-    """``out += weight * (one time sample of the view)`` over a region, in parallel by row."""
+    """``out += weight * (one time sample of the view)`` over a region, in parallel by row:
+    pixel (r, c) sees the object-plane point x = x_centre + offset[c] * size[r] (mm) across the
+    specimen, on the material section of row r (texel row `row_ty[r]`), and covers `size[r]` mm
+    of it (the edge blend). The plain scene's size is its scale on every row; a bench's varies
+    by row with the surface's distance."""
     rows, cols = out.shape
     tx_max = coefficients.shape[1] - 2 * PAD - 1.0
     ty_max = coefficients.shape[0] - 2 * PAD - 1.0
@@ -165,9 +170,11 @@ def _add_time_sample(
         ty = min(max(row_ty[r], 0.0), ty_max)
         half_width = row_half_width_mm[r]
         to_texels = row_inv_stretch[r] * inv_texel_mm
+        size = row_pixel_mm[r]
+        inv_size = 1.0 / size
         for c in range(cols):
-            x = col_x_mm[c]
-            cover = 0.5 + (half_width - abs(x)) * inv_scale_mm
+            x = x_centre_mm + col_offset_px[c] * size
+            cover = 0.5 + (half_width - abs(x)) * inv_size
             if cover <= 0.0:
                 value = background
             else:
@@ -355,7 +362,9 @@ class SpecimenScene:
         times, deformations = self._exposure(start_s, stop_s)
         cols = np.arange(region.x, region.x + region.width, dtype=np.float64)
         rows = np.arange(region.y, region.y + region.height, dtype=np.float64)
-        col_x, row_y = self.object_of(cols, rows)
+        _, row_y = self.object_of(0.0, rows)
+        col_offset_px = cols - 0.5 * (self.sensor_width - 1)
+        row_pixel_mm = np.full(len(rows), self.scale_mm_per_px)
         image = np.zeros((region.height, region.width), np.float64)
         weight = 1.0 / len(times)
         x_origin_texels = self.texture_origin_mm[0] / self.texel_mm
@@ -364,7 +373,7 @@ class SpecimenScene:
             Y = deformation.material_y(row_y)
             stretch = deformation.lateral_stretch_at(Y)
             ty = (Y - self.texture_origin_mm[1]) / self.texel_mm
-            _add_time_sample(
+            add_time_sample(
                 image,
                 weight,
                 self._coefficients,
@@ -372,10 +381,11 @@ class SpecimenScene:
                 np.ascontiguousarray(1.0 / stretch),
                 np.ascontiguousarray(deformation.half_width_at(Y) * stretch),
                 np.ascontiguousarray((Y >= y_min) & (Y <= y_max)),
-                col_x,
+                row_pixel_mm,
+                col_offset_px,
+                self.centre_mm[0],
                 x_origin_texels,
                 1.0 / self.texel_mm,
-                1.0 / self.scale_mm_per_px,
                 self.background,
             )
         truth = {
