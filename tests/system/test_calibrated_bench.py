@@ -6,15 +6,13 @@ slack), so what remains is what a calibration can correct."""
 import csv
 import json
 
-import cv2
 import numpy as np
 import pytest
 
+from appliance.bench.optics_calibration import target_views
 from appliance.config import load_config
 from appliance.optics.calibration_target import CalibrationTarget
-from appliance.optics.camera_model import PlanePose, PlaneProjection
 from appliance.plan.optics import configured_optics
-from appliance.sim.target import TargetLook, calibration_poses, render_target
 from appliance.sim.world import PRESETS, SimWorld
 from tests.system.test_calibrated_run import extensometer
 
@@ -36,18 +34,7 @@ def _views(config_path, folder) -> list:
     config = load_config(config_path)
     optics = configured_optics(config, PRESETS[config.sim.material].optics)
     world = SimWorld.from_config(config, optics)
-    camera, plane = world.lens_camera, world.specimen_plane
-    poses = calibration_poses(camera, TARGET, 12, distance_mm=plane.translation[2], seed=5)
-    centre = PlaneProjection(camera, plane).to_plane_mm([[camera.cx_px, camera.cy_px]])[0]
-    middle = np.array([0.5 * TARGET.size_mm[0], 0.5 * TARGET.size_mm[1], 0.0])
-    origin = plane.translation + plane.rotation @ (np.array([*centre, 0.0]) - middle)
-    poses[0] = PlanePose.from_arrays(plane.rotation_vector, origin)
-    paths = []
-    for k, pose in enumerate(poses):
-        path = folder / f"view{k:02d}.png"
-        cv2.imwrite(str(path), render_target(TARGET, pose, camera, look=TargetLook(), seed=k))
-        paths.append(path)
-    return paths
+    return target_views(world.lens_camera, world.specimen_plane, TARGET, folder, seed=5, count=12)
 
 
 def _errors(folder):
