@@ -313,15 +313,7 @@ def _print(verification: Verification, json_path: Path, html_path: Path) -> None
         )
     worst = v.worst_bias
     if worst is not None:
-        relative = worst.relative_bias_percent
-        lines.append(
-            (
-                "worst_bias",
-                f"{worst.bias_um:+.3f} um"
-                + (f" ({relative:+.3f} %)" if relative is not None else "")
-                + f" at {worst.calibrator_um:g} um, series {worst.series}",
-            )
-        )
+        lines.append(("worst_bias", worst.describe_bias()))
     if v.resolution_um is not None:
         lines.append(("resolution_um", f"{v.resolution_um:.4g}"))
     if v.gauge_length_error_percent is not None:

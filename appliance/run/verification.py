@@ -122,6 +122,15 @@ class CalibrationPoint:
             return None
         return 100.0 * self.bias_um / self.calibrator_um
 
+    def describe_bias(self) -> str:
+        """The bias as one line: "+0.410 um (+0.410 %) at 100 um, series 1"."""
+        relative = self.relative_bias_percent
+        return (
+            f"{self.bias_um:+.3f} um"
+            + (f" ({relative:+.3f} %)" if relative is not None else "")
+            + f" at {self.calibrator_um:g} um, series {self.series}"
+        )
+
 
 @dataclass(frozen=True)
 class VerificationData:

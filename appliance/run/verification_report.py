@@ -83,15 +83,7 @@ def report_html(verification: Verification, facts: dict[str, Any]) -> str:
     ]
     worst = v.worst_bias
     if worst is not None:
-        relative = worst.relative_bias_percent
-        rows.append(
-            (
-                "worst bias",
-                f"{worst.bias_um:+.3f} um"
-                + (f" ({relative:+.3f} %)" if relative is not None else "")
-                + f" at {worst.calibrator_um:g} um, series {worst.series}",
-            )
-        )
+        rows.append(("worst bias", worst.describe_bias()))
     rows += [
         (key.replace("_", " "), "none" if value is None else str(value))
         for key, value in facts.items()
