@@ -20,6 +20,9 @@ Subcommands, each parsed and handled in its own module of this package:
     bench          the benchmarks (accuracy, speed, simulated tests, Modbus latency, camera,
                    machine, trigger jitter, clock sync): figures and reports.
 
+`extensometer --version` prints `extensometer <version>`, the software version every recording
+carries (its MCAP header's library and its `run_start` metadata).
+
 Bad input ends with one line `extensometer: error: ...` naming the culprit and exit status 2.
 """
 
@@ -31,6 +34,7 @@ import os
 import sys
 from collections.abc import Sequence
 
+from appliance import __version__
 from appliance.cli import bench, calibrate, devices, plan, recording, run, track, verify
 from appliance.cli.arguments import Parser
 from appliance.errors import InputError
@@ -41,6 +45,12 @@ EXIT_USAGE = 2
 def build_parser() -> argparse.ArgumentParser:
     """The `extensometer` argument parser: every command's parser, each with its handler."""
     parser = Parser(prog="extensometer", description=__doc__.split("\n\n")[0])
+    parser.add_argument(
+        "--version",
+        action="version",
+        version=f"extensometer {__version__}",
+        help="print the software version (the one recordings carry) and exit",
+    )
     commands = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
     track.add_parser(commands)
     calibrate.add_parser(commands)
