@@ -227,6 +227,32 @@ class SimConfig:
 
 
 @dataclass(frozen=True)
+class SpecimenConfig:
+    """[specimen]: what the test's results (`appliance.results`) need of the specimen.
+
+    `material` names the standard the results follow: `metal` (ISO 6892-1: modulus, Rp0.2,
+    ReH/ReL, Rm, Ag, A) or `rubber` (ISO 37: TS, Eb, stresses at 100/200/300 %); left out, a
+    simulated test takes its `[sim] material` and a real one gives no results. The original
+    cross-section S0 is `width_mm` x `thickness_mm` (a flat specimen or a dumbbell) or the
+    circle of `diameter_mm` (a round one); left out, a simulated test takes its preset
+    specimen's nominal dimensions (its test specification) and a real one gives no stresses.
+    """
+
+    material: str | None = field(default=None, metadata={"choices": ("metal", "rubber")})
+    width_mm: float | None = field(default=None, metadata=_range(0.001, 10000.0))
+    thickness_mm: float | None = field(default=None, metadata=_range(0.001, 10000.0))
+    diameter_mm: float | None = field(default=None, metadata=_range(0.001, 10000.0))
+
+    def __post_init__(self) -> None:
+        flat = (self.width_mm is not None, self.thickness_mm is not None)
+        if self.diameter_mm is not None and any(flat):
+            raise ValueError("diameter_mm: give either diameter_mm or width_mm and thickness_mm")
+        if flat[0] != flat[1]:
+            missing = "thickness_mm" if flat[0] else "width_mm"
+            raise ValueError(f"{missing}: missing (width_mm and thickness_mm go together)")
+
+
+@dataclass(frozen=True)
 class RecordConfig:
     """[record]: the MCAP recording of every test (`appliance.recording.writer`).
 
@@ -338,6 +364,7 @@ class Config:
     tracking: TrackerSettings = field(default_factory=TrackerSettings)
     gauge: GaugeConfig = field(default_factory=GaugeConfig)
     run: RunConfig = field(default_factory=RunConfig)
+    specimen: SpecimenConfig = field(default_factory=SpecimenConfig)
     sim: SimConfig = field(default_factory=SimConfig)
     record: RecordConfig = field(default_factory=RecordConfig)
     storage: StorageConfig = field(default_factory=StorageConfig)
