@@ -6,9 +6,14 @@ the frame's acquisition time (start of exposure) as UNIX time in ns; the message
 the sample index, so the messages of one frame can be gathered from every channel. Per frame,
 in this order:
 
-* `/camera/window/<k>` (protobuf `foxglove.RawImage`): the pixels mark k's tracking read;
-* `/camera/full` (`foxglove.RawImage`): the whole frame at the configured rate, and the
-  reference frame;
+* `/camera/window/<k>` (protobuf `foxglove.RawImage`, `frame_id` `camera/window/<k>`): the
+  pixels mark k's tracking read, and `/annotations/window/<k>` (`foxglove.ImageAnnotations`):
+  mark k's points drawn on them;
+* `/camera/full` (`foxglove.RawImage`, `frame_id` `camera`): the whole frame at the configured
+  rate, and the reference frame, and `/annotations/full` (`foxglove.ImageAnnotations`): every
+  point and window outline drawn on it;
+* `/camera/transforms` (`foxglove.FrameTransforms`): where each window sits in the frame
+  (`appliance.recording.overlays`);
 * `/camera/trigger` (JSON): what started the exposure (frame id, time, exposure, mode; with
   the trigger microcontroller also the trigger's sequence number and tick, and the camera's
   own timestamp when the frame was stamped with its trigger's time);
@@ -22,9 +27,13 @@ in this order:
 Other channels: `/recorder/status` (JSON: changes of the full-frame rate when the disk falls
 behind) and `/log` (protobuf `foxglove.Log`: run states, commands, degradation, the end).
 
-JSON channels carry a JSON Schema (`jsonschema` encoding, so Foxglove plots their fields);
-numbers are written with Python's shortest exact representation, so every float reads back
-bit for bit; NaN and infinities are written as null and read back as NaN.
+The images, annotations, transforms and log entries carry their log time as their
+`timestamp`. JSON channels carry a JSON Schema (`jsonschema` encoding, so Foxglove plots their
+fields) with every field described and its unit (`appliance.recording.json_schemas`); every
+JSON record starts with `timestamp` (`{"sec", "nsec"}`, UNIX time, its log time), while the
+`timestamp_ns` fields stay on the device clock that replay measures with. Numbers are written
+with Python's shortest exact representation, so every float reads back bit for bit; NaN and
+infinities are written as null and read back as NaN.
 
 Metadata records (`extensometer.*`): `recording` (format and version), `run_start` (test id,
 start time, the device-to-UNIX clock offset, the reference frame's facts), `config` (the
@@ -43,6 +52,8 @@ from typing import Any
 
 import cv2
 import numpy as np
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
 from foxglove_schemas_protobuf.Log_pb2 import Log
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from google.protobuf.message import DecodeError
@@ -51,6 +62,13 @@ from mcap_protobuf.schema import build_file_descriptor_set
 from appliance.measure.frame_measurer import StrainSample
 from appliance.measure.frame_windows import ImageWindow
 from appliance.measure.tracking import TrackStatus
+from appliance.recording.json_schemas import JSON_SCHEMAS
+from appliance.recording.overlays import (
+    FULL_FRAME_ID,
+    TOPIC_FULL_ANNOTATIONS,
+    TOPIC_TRANSFORMS,
+    TOPIC_WINDOW_ANNOTATIONS,
+)
 from hal.machine.base import MachineState
 
 FORMAT_NAME = "extensometer-mcap"
@@ -71,114 +89,13 @@ TOPIC_TRUTH = "/sim/truth"
 TOPIC_RECORDER = "/recorder/status"
 TOPIC_LOG = "/log"
 
-PROTOBUF_TYPES = {"foxglove.RawImage": RawImage, "foxglove.Log": Log}
-"""Protobuf schema name -> message class."""
-
-_NUMBER = {"type": ["number", "null"]}
-_INTEGER = {"type": "integer"}
-_NUMBERS = {"type": "array", "items": _NUMBER}
-
-JSON_SCHEMAS: dict[str, dict[str, Any]] = {
-    "extensometer.Trigger": {
-        "type": "object",
-        "title": "What started one exposure",
-        "properties": {
-            "frame_id": _INTEGER,
-            "timestamp_ns": _INTEGER,
-            "exposure_us": _NUMBER,
-            "mode": {"type": "string"},
-            "sequence": {"type": ["integer", "null"]},
-            "tick": {"type": ["integer", "null"]},
-            "device_timestamp_ns": {"type": ["integer", "null"]},
-        },
-    },
-    "extensometer.MachineState": {
-        "type": "object",
-        "title": "The testing machine's state read with a frame",
-        "properties": {
-            "crosshead_mm": _NUMBER,
-            "speed_mm_min": _NUMBER,
-            "force_n": _NUMBER,
-            "running": {"type": "boolean"},
-            "timestamp_ns": _INTEGER,
-            "encoder_counts": {"type": ["integer", "null"]},
-        },
-    },
-    "extensometer.TrackedPoints": {
-        "type": "object",
-        "title": "Every tracked point of one frame",
-        "properties": {
-            "index": _INTEGER,
-            "frame_id": _INTEGER,
-            "timestamp_ns": _INTEGER,
-            "exposure_us": _NUMBER,
-            "zeroed": {"type": "boolean"},
-            "windows": {
-                "type": "array",
-                "items": {
-                    "type": "object",
-                    "properties": {
-                        "mark": _INTEGER,
-                        "x": _INTEGER,
-                        "y": _INTEGER,
-                        "width": _INTEGER,
-                        "height": _INTEGER,
-                    },
-                },
-            },
-            "points": {
-                "type": "object",
-                "properties": {
-                    **{k: _NUMBERS for k in ("x", "y", "u", "v", "ux", "uy", "vx", "vy", "zncc")},
-                    "status": {"type": "array", "items": {"type": "string"}},
-                },
-            },
-        },
-    },
-    "extensometer.Strain": {
-        "type": "object",
-        "title": "Strain of one frame",
-        "properties": {
-            "index": _INTEGER,
-            "frame_id": _INTEGER,
-            "timestamp_ns": _INTEGER,
-            "time_s": _NUMBER,
-            "engineering_strain": _NUMBER,
-            "true_strain": _NUMBER,
-            "transverse_strain": _NUMBER,
-            "poisson_ratio": _NUMBER,
-            "elongation_mm": _NUMBER,
-            "gauge_length_mm": _NUMBER,
-            "axial_px": _NUMBER,
-            "data_valid": {"type": "boolean"},
-            "points_lost": _INTEGER,
-            "reference_updates": _INTEGER,
-            "frames_dropped": _INTEGER,
-            "latency_ms": _NUMBER,
-        },
-    },
-    "extensometer.Truth": {
-        "type": "object",
-        "title": "True strain of a simulated frame",
-        "properties": {
-            "index": _INTEGER,
-            "true_engineering_strain": _NUMBER,
-            "true_elongation_mm": _NUMBER,
-        },
-    },
-    "extensometer.RecorderStatus": {
-        "type": "object",
-        "title": "Full-frame recording rate",
-        "properties": {
-            "full_frame_interval_s": _NUMBER,
-            "degradation_level": _INTEGER,
-            "backlog_bytes": _INTEGER,
-            "full_frames_skipped": _INTEGER,
-            "reason": {"type": "string"},
-        },
-    },
+PROTOBUF_TYPES = {
+    "foxglove.RawImage": RawImage,
+    "foxglove.Log": Log,
+    "foxglove.ImageAnnotations": ImageAnnotations,
+    "foxglove.FrameTransforms": FrameTransforms,
 }
-"""JSON channel schema name -> JSON Schema."""
+"""Protobuf schema name -> message class."""
 
 TOPIC_SCHEMAS: dict[str, str] = {
     TOPIC_FULL: "foxglove.RawImage",
@@ -189,8 +106,14 @@ TOPIC_SCHEMAS: dict[str, str] = {
     TOPIC_TRUTH: "extensometer.Truth",
     TOPIC_RECORDER: "extensometer.RecorderStatus",
     TOPIC_LOG: "foxglove.Log",
+    TOPIC_FULL_ANNOTATIONS: "foxglove.ImageAnnotations",
+    TOPIC_TRANSFORMS: "foxglove.FrameTransforms",
 }
-"""Topic -> schema name; window topics use foxglove.RawImage."""
+"""Topic -> schema name; window topics use foxglove.RawImage, their annotations
+foxglove.ImageAnnotations."""
+
+_WINDOW_PREFIX = TOPIC_WINDOW.split("{")[0]
+_WINDOW_ANNOTATIONS_PREFIX = TOPIC_WINDOW_ANNOTATIONS.split("{")[0]
 
 STRAIN_FIELDS = (
     "engineering_strain",
@@ -210,8 +133,10 @@ class FormatError(ValueError):
 
 def schema_of(topic: str) -> str:
     """The schema name of a topic."""
-    if topic.startswith("/camera/window/"):
+    if topic.startswith(_WINDOW_PREFIX):
         return "foxglove.RawImage"
+    if topic.startswith(_WINDOW_ANNOTATIONS_PREFIX):
+        return "foxglove.ImageAnnotations"
     return TOPIC_SCHEMAS[topic]
 
 
@@ -265,7 +190,7 @@ def _encoding(image: np.ndarray) -> str:
     raise FormatError(f"images must be uint8 or uint16, got {image.dtype}")
 
 
-def raw_image(image: np.ndarray, time_ns: int, frame_id: str = "camera") -> bytes:
+def raw_image(image: np.ndarray, time_ns: int, frame_id: str = FULL_FRAME_ID) -> bytes:
     """A grey image as a serialised `foxglove.RawImage` (mono8, or mono16 little-endian)."""
     encoding = _encoding(image)
     height, width = image.shape

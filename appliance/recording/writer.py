@@ -37,6 +37,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, BinaryIO
 
+import numpy as np
 from mcap.writer import CompressionType, Writer
 
 from appliance import __version__
@@ -70,6 +71,16 @@ from appliance.recording.format import (
     schema_of,
     strain_record,
     trigger_record,
+)
+from appliance.recording.json_schemas import foxglove_time
+from appliance.recording.overlays import (
+    TOPIC_FULL_ANNOTATIONS,
+    TOPIC_TRANSFORMS,
+    TOPIC_WINDOW_ANNOTATIONS,
+    full_frame_annotations,
+    window_annotations,
+    window_frame_id,
+    window_transforms,
 )
 from appliance.run.loop import DeviceEvent, LoopResult
 from appliance.run.outputs import RunFacts
@@ -213,6 +224,13 @@ class McapRecorder:
         self._last_time_ns = log_time
         self._submit(("attachment", REFERENCE_ATTACHMENT, "image/png", png(image), log_time))
         self._message(TOPIC_FULL, log_time, 0, raw_image(image, log_time))
+        reference_status = np.zeros(len(facts.points), dtype=np.int8)
+        self._message(
+            TOPIC_FULL_ANNOTATIONS,
+            log_time,
+            0,
+            full_frame_annotations(log_time, None, facts.points, reference_status),
+        )
         self.full_frames_recorded += 1
         self.log("INFO", "reference frame taken; measuring", log_time)
         self._submit(("flush",))
@@ -254,12 +272,20 @@ class McapRecorder:
         log_time = facts.unix_time_ns(sample.timestamp_ns)
         self._last_time_ns = log_time
         seq = sample.index
+        positions, status = sample.positions, sample.status
         for k, window in enumerate(sample.windows):
-            self._message(
-                TOPIC_WINDOW.format(mark=k), log_time, seq, raw_image(window.pixels, log_time)
-            )
+            image = raw_image(window.pixels, log_time, window_frame_id(k))
+            self._message(TOPIC_WINDOW.format(mark=k), log_time, seq, image)
+            if k < len(facts.marks):
+                overlay = window_annotations(
+                    log_time, seq, window, positions, status, facts.marks[k]
+                )
+                self._message(TOPIC_WINDOW_ANNOTATIONS.format(mark=k), log_time, seq, overlay)
+        self._message(TOPIC_TRANSFORMS, log_time, seq, window_transforms(log_time, sample.windows))
         if self._full_frame_due(sample.timestamp_ns) and sample.image is not None:
             self._message(TOPIC_FULL, log_time, seq, raw_image(sample.image, log_time))
+            overlay = full_frame_annotations(log_time, seq, positions, status, sample.windows)
+            self._message(TOPIC_FULL_ANNOTATIONS, log_time, seq, overlay)
             self.full_frames_recorded += 1
         self._json(TOPIC_TRIGGER, log_time, seq, trigger_record(sample, self._trigger_mode))
         if sample.machine is not None:
@@ -375,7 +401,8 @@ class McapRecorder:
         self._submit(("metadata", META_PREFIX + name, data))
 
     def _json(self, topic: str, log_time: int, seq: int, record: dict[str, Any]) -> None:
-        self._message(topic, log_time, seq, encode_json(record))
+        stamped = {"timestamp": foxglove_time(log_time), **record}
+        self._message(topic, log_time, seq, encode_json(stamped))
 
     def _message(self, topic: str, log_time: int, seq: int, data: bytes) -> None:
         self._submit(("message", topic, log_time, seq, data))
