@@ -1,0 +1,465 @@
+"""Specimen detection: a flat tensile specimen's outline, axis, parallel length and width, from
+one image alone.
+
+`detect_specimen(image)` finds the specimen against its background, back-lit (a dark
+silhouette on a bright field) or front-lit (a bright or speckled specimen on a dark or bright
+backdrop), a little rotated, off-centre, with the grips in view:
+
+1. segmentation, on a copy reduced to about 512 px: the image smoothed, split in two by Otsu's
+   threshold (refused when the split does not separate two populations: a uniform image), the
+   background being the class that holds most of the image's border; the connected regions
+   of the foreground larger than `MIN_AREA_FRACTION` of the image are the candidates (none: no
+   specimen; two of comparable size: two objects);
+2. a first axis from the region's second moments, then twice: the image resampled along that
+   axis (rows along it, one pixel apart, columns across it), averaged along the axis over
+   `EDGE_SMOOTHING_PX` rows to wash out a speckle, and on every row the two edges nearest the
+   axis located to a fraction of a pixel where the profile crosses halfway between the grey
+   levels just outside and just inside the edge;
+3. the parallel length: the longest run of rows whose width stays within `PARALLEL_TOLERANCE`
+   of the narrowest width (a shoulder, a tab or a grip is wider); its ends are where the width
+   has departed from the parallel width by that tolerance, so they lie a little beyond the
+   tangent points of the transition arcs (about 1.7 mm for an ISO 37 type 1 dumb-bell). A run
+   that reaches the edge of the image is refused: its ends, and so its centre, are not in view;
+4. a straight line fitted to each edge over the middle 80 % of the run (points beyond 3 median
+   deviations dropped once): the axis is their mean direction, the width their distance across
+   it at the centre, the centre halfway between the ends, halfway between the edges.
+
+Angles follow `[gauge] axis_deg`: degrees from the image's +x towards +y, in [0, 180) (90 = a
+vertical specimen). Pixel centres are at integer coordinates, x = column, y = row.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+WORKING_SIZE_PX = 512
+"""Longest side of the reduced copy that is segmented, px."""
+MIN_AREA_FRACTION = 0.003
+"""Smallest region that counts as an object, as a fraction of the image's area."""
+SECOND_OBJECT_FRACTION = 0.25
+"""A second region at least this fraction of the largest one's area is a second object."""
+MIN_SEPARATION = 0.8
+"""Otsu's effectiveness (between-class over total variance) below which the image holds no
+two populations (a uniform image with noise scores about 0.64, a specimen over 0.85)."""
+EDGE_SMOOTHING_PX = 15
+"""Rows averaged along the axis before the edges are located, px."""
+PARALLEL_TOLERANCE = (0.8, 0.01)
+"""Width above the parallel width that ends the parallel length: the larger of 0.8 px and 1 %."""
+OUTLIER_WINDOW_PX = 61
+OUTLIER_PX = 1.0
+"""A row whose width differs from the median of the `OUTLIER_WINDOW_PX` rows about it by more
+than `OUTLIER_PX` and 4 robust standard deviations of that difference (a speckle at the edge
+fooled its edge search) is left out."""
+
+
+class SpecimenNotFound(ValueError):
+    """The image holds no single specimen that can be measured; the message says what was seen
+    (one line)."""
+
+
+@dataclass(frozen=True)
+class SpecimenDetection:
+    """A specimen found in an image.
+
+    Attributes:
+        centre_px: (x, y) of the parallel length's centre on the axis, px.
+        axis_deg: the loading axis, degrees from +x towards +y, in [0, 180).
+        width_px: width of the parallel length across the axis, px.
+        parallel_ends_px: ((x, y), (x, y)) the parallel length's ends on the axis, px, the
+            first at the smaller y (the smaller x for a horizontal specimen).
+        parallel_length_px: distance between the ends, px.
+        edge_rms_px: root mean square of the edge points about their fitted lines, px.
+        dark_on_bright: the specimen is darker than its background (back-lit).
+        outline_px: (n, 2) the outline of the region found (the specimen, with any grip that
+            touches it), px, for display.
+    """
+
+    centre_px: tuple[float, float]
+    axis_deg: float
+    width_px: float
+    parallel_ends_px: tuple[tuple[float, float], tuple[float, float]]
+    parallel_length_px: float
+    edge_rms_px: float
+    dark_on_bright: bool
+    outline_px: np.ndarray
+
+    @property
+    def along(self) -> np.ndarray:
+        """Unit vector (x, y) along the axis."""
+        theta = math.radians(self.axis_deg)
+        return np.array([math.cos(theta), math.sin(theta)])
+
+    def as_dict(self) -> dict[str, object]:
+        """The figures, JSON-ready (the outline left out)."""
+        return {
+            "centre_x_px": self.centre_px[0],
+            "centre_y_px": self.centre_px[1],
+            "axis_deg": self.axis_deg,
+            "width_px": self.width_px,
+            "parallel_length_px": self.parallel_length_px,
+            "parallel_ends_px": [list(end) for end in self.parallel_ends_px],
+            "edge_rms_px": self.edge_rms_px,
+            "lighting": "dark on bright" if self.dark_on_bright else "bright on dark",
+        }
+
+
+@dataclass(frozen=True)
+class _Region:
+    mask: np.ndarray
+    factor: float
+    sign: float
+    outline_px: np.ndarray
+
+
+def detect_specimen(image: np.ndarray) -> SpecimenDetection:
+    """Find the specimen in `image` (2-D grey levels, or colour averaged to grey).
+
+    Raises:
+        SpecimenNotFound: no specimen, more than one object, a parallel length that touches
+            the image's edge or runs out of it, or one too short to measure.
+    """
+    grey = np.asarray(image, np.float32)
+    if grey.ndim == 3:
+        grey = grey.mean(axis=2)
+    if grey.ndim != 2 or min(grey.shape) < 32:
+        raise SpecimenNotFound(f"an image of shape {grey.shape} holds no specimen to find")
+    region = _segment(grey)
+    ys, xs = np.nonzero(region.mask)
+    scale = region.factor
+    points = np.column_stack([(xs + 0.5) * scale - 0.5, (ys + 0.5) * scale - 0.5])
+    centre = points.mean(axis=0)
+    mu = np.cov(points.T)
+    theta = 0.5 * math.atan2(2 * mu[0, 1], mu[0, 0] - mu[1, 1])
+    for _ in range(2):
+        centre, theta, figures = _measure_along(grey, region, points, centre, theta)
+    width, ends, rms = figures
+    axis_deg = math.degrees(theta) % 180.0
+    first, second = ends
+    if (first[1], first[0]) > (second[1], second[0]):
+        first, second = second, first
+    return SpecimenDetection(
+        centre_px=(float(centre[0]), float(centre[1])),
+        axis_deg=axis_deg,
+        width_px=width,
+        parallel_ends_px=((float(first[0]), float(first[1])), (float(second[0]), float(second[1]))),
+        parallel_length_px=float(np.hypot(*(second - first))),
+        edge_rms_px=rms,
+        dark_on_bright=region.sign < 0,
+        outline_px=region.outline_px,
+    )
+
+
+def _segment(grey: np.ndarray) -> _Region:
+    height, width = grey.shape
+    factor = max(1, int(round(max(height, width) / WORKING_SIZE_PX)))
+    small = cv2.resize(
+        grey, (width // factor, height // factor), interpolation=cv2.INTER_AREA
+    ).astype(np.float32)
+    small = cv2.GaussianBlur(small, (0, 0), 1.5)
+    low, high = np.percentile(small, [0.5, 99.5])
+    if not high - low > 1e-6 * max(abs(high), 1.0):
+        raise SpecimenNotFound(f"no specimen: the image is uniform (grey level {low:.4g})")
+    scaled = np.clip((small - low) / (high - low) * 255.0, 0, 255).astype(np.uint8)
+    threshold, binary = cv2.threshold(scaled, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    fg = binary > 0
+    total_var = float(scaled.var())
+    between = (
+        float(fg.mean() * (1 - fg.mean()))
+        * (float(scaled[fg].mean()) - float(scaled[~fg].mean())) ** 2
+        if 0 < fg.mean() < 1
+        else 0.0
+    )
+    if total_var == 0 or between / total_var < MIN_SEPARATION:
+        raise SpecimenNotFound(
+            f"no specimen: nothing stands out from the background (grey levels {low:.4g} to "
+            f"{high:.4g} in one population)"
+        )
+    border = np.concatenate([fg[0], fg[-1], fg[:, 0], fg[:, -1]])
+    sign = 1.0
+    if border.mean() > 0.5:
+        fg, sign = ~fg, -1.0
+    mask = fg.astype(np.uint8)
+    mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8))
+    mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    count, labels, stats, centroids = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    order = np.argsort(areas)[::-1]
+    large = [i for i in order if areas[i] >= MIN_AREA_FRACTION * mask.size]
+    if not large:
+        raise SpecimenNotFound(
+            "no specimen: nothing larger than "
+            f"{MIN_AREA_FRACTION:.1%} of the image stands out from the background"
+        )
+
+    def at(i: int) -> str:
+        x, y = centroids[i + 1]
+        return f"({(x + 0.5) * factor - 0.5:.0f}, {(y + 0.5) * factor - 0.5:.0f})"
+
+    if len(large) > 1 and areas[large[1]] >= SECOND_OBJECT_FRACTION * areas[large[0]]:
+        seen = " and ".join(at(i) for i in large[:3])
+        raise SpecimenNotFound(
+            f"{len(large)} objects stand out from the background, at {seen} px: "
+            "one specimen at a time"
+        )
+    chosen = ndimage.binary_fill_holes(labels == large[0] + 1).astype(np.uint8)
+    contours, _ = cv2.findContours(chosen, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    outline = max(contours, key=cv2.contourArea).reshape(-1, 2).astype(np.float64)
+    return _Region(chosen > 0, float(factor), sign, (outline + 0.5) * factor - 0.5)
+
+
+def _measure_along(
+    grey: np.ndarray,
+    region: _Region,
+    points: np.ndarray,
+    centre: np.ndarray,
+    theta: float,
+) -> tuple[np.ndarray, float, tuple[float, tuple[np.ndarray, np.ndarray], float]]:
+    """One pass: resample along `theta` through `centre`, locate the edges, find the parallel
+    length and fit its edges. Returns the new centre, axis and (width, ends, rms)."""
+    along = np.array([math.cos(theta), math.sin(theta)])
+    across = np.array([-along[1], along[0]])
+    s = (points - centre) @ along
+    t = (points - centre) @ across
+    margin = 4 * region.factor + 8
+    s_grid = np.arange(math.floor(s.min() - margin), math.ceil(s.max() + margin) + 1.0)
+    t_grid = np.arange(math.floor(t.min() - margin), math.ceil(t.max() + margin) + 1.0)
+    map_x = (centre[0] + s_grid[:, None] * along[0] + t_grid[None, :] * across[0]).astype(
+        np.float32
+    )
+    map_y = (centre[1] + s_grid[:, None] * along[1] + t_grid[None, :] * across[1]).astype(
+        np.float32
+    )
+    strip = cv2.remap(grey, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    height, width = grey.shape
+    inside = (map_x >= 0) & (map_x <= width - 1) & (map_y >= 0) & (map_y <= height - 1)
+    strip = ndimage.uniform_filter1d(strip, EDGE_SMOOTHING_PX, axis=0, mode="nearest")
+    half = EDGE_SMOOTHING_PX // 2
+    in_view = ndimage.minimum_filter1d(inside.astype(np.uint8), 2 * half + 1, axis=0) > 0
+    mask = cv2.remap(
+        region.mask.astype(np.uint8),
+        (map_x + 0.5) / np.float32(region.factor) - 0.5,
+        (map_y + 0.5) / np.float32(region.factor) - 0.5,
+        cv2.INTER_NEAREST,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    )
+    centre_col = int(np.argmin(np.abs(t_grid)))
+    left, right, touching = _edges(strip, mask > 0, in_view, region.sign, centre_col)
+    widths = right - left
+    deviation = np.abs(widths - _running_median(widths, OUTLIER_WINDOW_PX))
+    spread = 4 * 1.4826 * np.nanmedian(deviation) if np.isfinite(deviation).any() else 0.0
+    outliers = ~(deviation <= max(OUTLIER_PX, spread))
+    left[outliers] = right[outliers] = widths[outliers] = np.nan
+    run = _parallel_run(widths)
+    if run is None:
+        raise SpecimenNotFound("the specimen has no parallel length long enough to measure")
+    start, stop = run
+    if np.any(touching[start:stop]) or any(
+        0 <= i < len(widths) and not in_view[i, centre_col] for i in (start - 1, stop)
+    ):
+        x, y = centre + 0.5 * (s_grid[start] + s_grid[stop - 1]) * along
+        raise SpecimenNotFound(
+            f"the specimen's parallel length (near ({x:.0f}, {y:.0f}) px) touches or runs out "
+            "of the image's edge: its ends are not in view"
+        )
+    first_end, s_centre, last_end = _ends(s_grid, widths, start, stop)
+    trim = max(1, int(0.1 * (stop - start)))
+    rows = np.arange(start + trim, stop - trim)
+    left_line, left_rms = _robust_line(s_grid[rows], t_grid[0] + left[rows])
+    right_line, right_rms = _robust_line(s_grid[rows], t_grid[0] + right[rows])
+    s_mid = s_centre
+    slope = 0.5 * (left_line[0] + right_line[0])
+    tilt = math.atan(slope)
+
+    def on_axis(s_at: float) -> np.ndarray:
+        t_at = 0.5 * (np.polyval(left_line, s_at) + np.polyval(right_line, s_at))
+        return centre + s_at * along + t_at * across
+
+    width_px = float(
+        (np.polyval(right_line, s_mid) - np.polyval(left_line, s_mid)) * math.cos(tilt)
+    )
+    ends = (on_axis(first_end), on_axis(last_end))
+    rms = float(math.sqrt(0.5 * (left_rms**2 + right_rms**2)))
+    return on_axis(s_mid), theta + tilt, (width_px, ends, rms)
+
+
+def _edges(
+    strip: np.ndarray, mask: np.ndarray, in_view: np.ndarray, sign: float, centre_col: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sub-pixel column of the left and right edge on every row of `strip` (NaN where the row
+    has no specimen on the axis), from the segmentation's edges in `mask`; and whether an
+    edge's neighbourhood leaves the image."""
+    rows, cols = strip.shape
+    left = np.full(rows, np.nan)
+    right = np.full(rows, np.nan)
+    touching = np.zeros(rows, bool)
+    index = np.arange(cols)
+    reach = _SEARCH_PX + _LEVEL_PX[1]
+    for r in np.nonzero(mask[:, centre_col])[0]:
+        background = ~mask[r]
+        before = index[: centre_col + 1][background[: centre_col + 1]]
+        after = index[centre_col:][background[centre_col:]]
+        if before.size == 0 or after.size == 0:
+            touching[r] = True
+            continue
+        profile = strip[r]
+        for j, step, out in ((before[-1], 1, left), (after[0], -1, right)):
+            lo, hi = sorted((j - reach * step, j + reach * step))
+            if lo < 0 or hi >= cols or not np.all(in_view[r, lo : hi + 1]):
+                touching[r] = True
+                break
+            out[r] = _crossing(profile, j, step, sign)
+    return left, right, touching
+
+
+_SEARCH_PX = 8
+"""How far either side of the segmentation's edge the sub-pixel edge is looked for, px."""
+_LEVEL_PX = (2, 5)
+"""The grey levels either side of an edge are averaged this far from it, px."""
+
+
+def _crossing(profile: np.ndarray, j: int, step: int, sign: float) -> float:
+    """Column where `profile` crosses halfway between its levels just outside and just inside
+    the edge near column `j` (the specimen lies in direction `step`): found once about `j`,
+    then again about the first estimate."""
+    edge = float(j)
+    for _ in range(2):
+        k = int(round(edge))
+        near, far = _LEVEL_PX
+        outside = profile[k - far * step : k - near * step + step : step].mean()
+        inside = profile[k + near * step : k + far * step + step : step].mean()
+        mid = 0.5 * (outside + inside)
+        found = None
+        for i in range(k - _SEARCH_PX * step, k + (_SEARCH_PX - 2) * step, step):
+            a, b = profile[i], profile[i + step]
+            if (a - mid) * sign <= 0 < (b - mid) * sign:
+                found = float(i + step * (mid - a) / (b - a))
+                break
+        if found is None:
+            return math.nan
+        edge = found
+    return edge
+
+
+def _parallel_run(widths: np.ndarray) -> tuple[int, int] | None:
+    """[start, stop) rows of the longest run whose width stays within the tolerance of the
+    narrowest; None when shorter than 20 rows."""
+    valid = np.isfinite(widths)
+    if valid.sum() < 20:
+        return None
+    smooth = _running_median(widths, EDGE_SMOOTHING_PX)
+    finite = smooth[np.isfinite(smooth)]
+    if finite.size == 0:
+        return None
+    reference = float(finite.min())
+    for _ in range(2):
+        tolerance = max(PARALLEL_TOLERANCE[0], PARALLEL_TOLERANCE[1] * reference)
+        reference = float(np.median(finite[finite <= reference + tolerance]))
+    tolerance = max(PARALLEL_TOLERANCE[0], PARALLEL_TOLERANCE[1] * reference)
+    within = ~(np.abs(smooth - reference) > tolerance)
+    best: tuple[int, int] | None = None
+    start = None
+    for i, flag in enumerate(np.append(within, False)):
+        if flag and start is None:
+            start = i
+        elif not flag and start is not None:
+            if best is None or i - start > best[1] - best[0]:
+                best = (start, i)
+            start = None
+    if best is None:
+        return None
+    finite_rows = np.nonzero(np.isfinite(smooth[best[0] : best[1]]))[0] + best[0]
+    if finite_rows.size < 20:
+        return None
+    return int(finite_rows[0]), int(finite_rows[-1]) + 1
+
+
+def _ends(
+    s_grid: np.ndarray, widths: np.ndarray, start: int, stop: int
+) -> tuple[float, float, float]:
+    """The parallel length's ends and its centre along the axis (positions on `s_grid`).
+
+    The ends are where the width, going outward from the run [start, stop), first exceeds the
+    parallel width by the tolerance (interpolated between rows). The centre is the mean of the
+    midpoints between the two sides' crossings of that level and of 2, 4, ... 32 times it,
+    as far as both sides reach them within a quarter of the run beyond its ends (the steep
+    part of the shoulders, before any grip): the shoulders' symmetry fixes it better than the
+    flat start of the transition arcs does.
+    """
+    smooth = _running_mean(widths, 5)
+    reference = float(np.nanmedian(smooth[start:stop]))
+    tolerance = max(PARALLEL_TOLERANCE[0], PARALLEL_TOLERANCE[1] * reference)
+    reach = max(1, (stop - start) // 4)
+    midpoints = []
+    ends = (float(s_grid[start]), float(s_grid[stop - 1]))
+    for k in range(6):
+        level = reference + tolerance * 2**k
+        low = _outward_crossing(s_grid, smooth, start, -1, level, reach)
+        high = _outward_crossing(s_grid, smooth, stop - 1, 1, level, reach)
+        if low is None or high is None:
+            break
+        if k == 0:
+            ends = (low, high)
+        midpoints.append(0.5 * (low + high))
+    centre = float(np.mean(midpoints)) if midpoints else 0.5 * (ends[0] + ends[1])
+    return ends[0], centre, ends[1]
+
+
+def _outward_crossing(
+    s_grid: np.ndarray, widths: np.ndarray, row: int, step: int, level: float, reach: int
+) -> float | None:
+    """Position where `widths`, walked from `row` in direction `step` over the rows that have
+    one, first rises above `level`; None when it does not within `reach` rows."""
+    if not widths[row] <= level:
+        return float(s_grid[row])
+    for nxt in range(row + step, row + step * (reach + 1), step):
+        if not 0 <= nxt < len(widths):
+            return None
+        if not np.isfinite(widths[nxt]):
+            continue
+        if widths[nxt] > level:
+            fraction = (level - widths[row]) / (widths[nxt] - widths[row])
+            return float(s_grid[row] + (s_grid[nxt] - s_grid[row]) * fraction)
+        row = nxt
+    return None
+
+
+def _running_median(values: np.ndarray, window: int) -> np.ndarray:
+    """Median of the finite values in a centred window of `window` rows (NaN where fewer than
+    half of them are finite)."""
+    half = window // 2
+    padded = np.pad(values, half, constant_values=np.nan)
+    windows = np.lib.stride_tricks.sliding_window_view(padded, window)
+    enough = np.isfinite(windows).sum(axis=1) >= (window + 1) // 2
+    out = np.full(len(values), np.nan)
+    if enough.any():
+        out[enough] = np.nanmedian(windows[enough], axis=1)
+    return out
+
+
+def _running_mean(values: np.ndarray, window: int) -> np.ndarray:
+    """Mean of the finite values in a centred window of `window` rows (NaN where there is
+    none)."""
+    finite = np.isfinite(values)
+    total = ndimage.uniform_filter1d(np.where(finite, values, 0.0), window, mode="nearest")
+    count = ndimage.uniform_filter1d(finite.astype(float), window, mode="nearest")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0.5 / window, total / np.maximum(count, 1e-12), np.nan)
+
+
+def _robust_line(s: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares line t(s) (polyval coefficients), refitted once without the points beyond
+    3 median absolute deviations; and the rms of the points kept about it."""
+    keep = np.isfinite(t)
+    line = np.polyfit(s[keep], t[keep], 1)
+    residual = t - np.polyval(line, s)
+    mad = np.nanmedian(np.abs(residual[keep]))
+    keep &= np.abs(residual) <= max(3 * 1.4826 * mad, 1e-6)
+    line = np.polyfit(s[keep], t[keep], 1)
+    rms = float(np.sqrt(np.mean((t[keep] - np.polyval(line, s[keep])) ** 2)))
+    return line, rms
