@@ -17,8 +17,10 @@
    else by the nominal scale of the optics (`appliance.run.object_plane`);
 4. the loop (`appliance.run.loop`) until the strain limit, the break, or a stop;
 5. outputs (`OutputFiles`): the strain file (every sample, with the truth when simulated),
-   the summary, the MCAP recording (`appliance.recording.writer`) and the hooks' outputs (a
-   viewer), and the summary returned.
+   the summary with the test's results and the report page (`appliance.results`: the
+   `[specimen]` table's material and cross-section, or a simulated test's preset), the MCAP
+   recording (`appliance.recording.writer`) and the hooks' outputs (a viewer), and the summary
+   returned.
 
 Before the test its directories must have `[storage] min_free_mb` free, and a reserve is held
 beside the strain file (`appliance.run.disk_space`). A full disk during the test (the recording
@@ -55,6 +57,8 @@ from appliance.plan.trigger_plan import (
     free_running_plan,
 )
 from appliance.recording.writer import McapRecorder
+from appliance.results.report_output import TestReport
+from appliance.results.series import cross_section_mm2
 from appliance.rig import Rig, rig_for
 from appliance.run.disk_space import DiskReserve, check_free_space
 from appliance.run.drops import DropWarning
@@ -95,11 +99,24 @@ class OutputFiles:
         strain: the strain file (`appliance.run.strain_file`); its directory is created.
         summary: the summary as JSON, written at the end; its directory is created.
         recording: the MCAP recording (must not exist; its directory must).
+        report: the report page; left out, it is written beside the summary (`report_page`).
     """
 
     strain: Path | None = None
     summary: Path | None = None
     recording: Path | None = None
+    report: Path | None = None
+
+    @property
+    def report_page(self) -> Path | None:
+        """Where the report page goes: `report`, else beside the summary (`summary.json` ->
+        `report.html`, `NAME.summary.json` -> `NAME.report.html`, `NAME.json` ->
+        `NAME.report.html`); None with neither."""
+        if self.report is not None or self.summary is None:
+            return self.report
+        stem = self.summary.name.removesuffix(".json")
+        prefix = stem.removesuffix("summary") if stem.endswith("summary") else f"{stem}."
+        return self.summary.with_name(f"{prefix}report.html")
 
     @classmethod
     def in_directory(cls, out_dir: Path | None, recording: Path | None = None) -> OutputFiles:
@@ -180,7 +197,12 @@ def run_test(
         _release(reserve)
         call_in_control(rig.close, alive)
         raise
-    outputs: list[RunOutput] = ([recorder] if recorder is not None else []) + list(hooks.outputs)
+    report = TestReport(truth=samples.latest_truth if simulate else None)
+    outputs: list[RunOutput] = [
+        *([recorder] if recorder is not None else []),
+        report,
+        *hooks.outputs,
+    ]
     known_before = _run_facts(config, rig, plan, calibration, in_force.exposure_us, triggers)
     facts = {"test_id": test_id, "simulated": simulate, **known_before}
     reference = _Reference(config, rig, calibration, samples, outputs, facts)
@@ -240,6 +262,9 @@ def run_test(
         extra,
         writer.path if writer is not None else None,
     )
+    page = files.report_page
+    if page is not None:
+        call_in_control(lambda: report.write(page, outcome), alive)
     if files.summary is not None:
         call_in_control(lambda: _write_summary(outcome, files.summary), alive)
     return outcome
@@ -448,6 +473,7 @@ def _run_facts(
         **({"material": config.sim.material} if rig.world is not None else {}),
         "speed_mm_min": rig.speed_mm_min,
         "gauge_length_mm": rig.gauge_length_mm,
+        **_specimen_facts(config, rig),
         "scale_mm_per_px": calibration.scale_mm_per_px,
         **measurement_facts(calibration, rig.optics, rig.gauge_length_mm),
         "exposure_us": exposure_us,
@@ -462,6 +488,26 @@ def _run_facts(
         facts["trigger_encoder_divisor"] = triggers.encoder_divisor
         facts["frame_period_s"] = triggers.frame_period_s
     return facts
+
+
+def _specimen_facts(config: Config, rig: Rig) -> dict[str, Any]:
+    """The specimen's material and original cross-section S0, for the results: the
+    `[specimen]` table's, else a simulated test's preset (its nominal dimensions are the
+    test's specification, not the simulated truth)."""
+    specimen = config.specimen
+    material = specimen.material or (config.sim.material if rig.world is not None else None)
+    area = cross_section_mm2(specimen)
+    source = "[specimen]" if area is not None else None
+    if area is None and rig.world is not None:
+        from appliance.sim.world import PRESETS
+
+        nominal = PRESETS[config.sim.material].specimen()
+        area, source = nominal.parallel_area_mm2, f"{nominal.name}, nominal dimensions"
+    return {
+        "specimen_material": material,
+        "cross_section_mm2": area,
+        "cross_section_source": source,
+    }
 
 
 def _run_counts(

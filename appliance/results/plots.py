@@ -19,6 +19,7 @@ from appliance.results.series import TestSeries
 WIDTH_IN = 8.0
 HEIGHT_IN = 4.0
 GAUGE_MARGIN_PX = 120
+GAUGE_MARGIN_FRACTION = 0.3
 MAX_IMAGE_PX = 700
 
 
@@ -31,13 +32,25 @@ def _pyplot():
     return plt
 
 
+SVG_METADATA = {"Creator": None, "Date": None, "Format": None, "Type": None}
+SVG_NAMESPACES = (
+    ' xmlns:xlink="http://www.w3.org/1999/xlink"',
+    ' xmlns="http://www.w3.org/2000/svg"',
+)
+
+
 def _svg(figure) -> str:
+    """The figure as an `<svg>` element for an HTML page: no metadata block, and no namespace
+    declarations (HTML knows the SVG and xlink names), so the page names no web address."""
     buffer = io.StringIO()
     figure.tight_layout()
-    figure.savefig(buffer, format="svg")
+    figure.savefig(buffer, format="svg", metadata=SVG_METADATA)
     _pyplot().close(figure)
     text = buffer.getvalue()
-    return text[text.index("<svg") :]
+    text = text[text.index("<svg") :]
+    for declaration in SVG_NAMESPACES:
+        text = text.replace(declaration, "", 1)
+    return text
 
 
 def stress_strain_svg(
@@ -138,8 +151,10 @@ def gauge_png_uri(
     a `data:image/png;base64,...` URI."""
     plt = _pyplot()
     grey = image if image.ndim == 2 else image.mean(axis=2)
-    low_x, low_y = np.floor(points.min(axis=0)).astype(int) - GAUGE_MARGIN_PX
-    high_x, high_y = np.ceil(points.max(axis=0)).astype(int) + GAUGE_MARGIN_PX
+    span = float(np.ptp(points, axis=0).max())
+    margin = int(max(GAUGE_MARGIN_PX, GAUGE_MARGIN_FRACTION * span))
+    low_x, low_y = np.floor(points.min(axis=0)).astype(int) - margin
+    high_x, high_y = np.ceil(points.max(axis=0)).astype(int) + margin
     low_x, low_y = max(low_x, 0), max(low_y, 0)
     high_x, high_y = min(high_x, grey.shape[1]), min(high_y, grey.shape[0])
     crop = grey[low_y:high_y, low_x:high_x].astype(np.float64)
@@ -169,6 +184,7 @@ def gauge_png_uri(
         xytext=(8, 0),
         color="#e41a1c",
         fontsize=9,
+        bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"},
     )
     if layout.transverse is not None:
         (tx0, ty0), (tx1, ty1) = (

@@ -90,23 +90,28 @@ class TestReport:
             return {"results": ResultsObject.of(self.results)}
         return {"results": ResultsObject.none(self.no_results_reason or "")}
 
-    def write(self, path: Path, outcome: RunOutcome, title: str = "") -> None:
-        """Draw the figures and write the page to `path`.
+    def write(self, path: Path, outcome: RunOutcome) -> None:
+        """Draw the figures and write the page to `path` (its directory must exist).
 
-        Args:
-            path: the page's file (its directory must exist).
-            outcome: the test's summary (how it ended, its counts and facts).
-            title: the page's heading; the test's name by default.
-
-        Raises:
-            OSError: the file cannot be written.
+        The summary's `report` then names the page, or says why it could not be written: the
+        page only shows what the summary and the strain file hold, so the test's outcome
+        stands either way.
         """
-        summary = outcome.as_dict()
-        name = title or f"Tensile test {summary.get('test_id') or ''}".strip()
+        facts = self._facts.facts if self._facts is not None else {}
+        title = f"Tensile test {facts.get('test_id') or ''}".strip()
         page = report_html(
-            name, _facts_rows(summary), self.results, self.no_results_reason, self._figures()
+            title,
+            _facts_rows(outcome.as_dict()),
+            self.results,
+            self.no_results_reason,
+            self._figures(),
         )
-        path.write_text(page, encoding="utf-8")
+        try:
+            path.write_text(page, encoding="utf-8")
+        except OSError as exc:
+            outcome.extra["report"] = f"{path}: cannot write ({exc.strerror})"
+            return
+        outcome.extra["report"] = str(path)
 
     def _figures(self) -> ReportFigures:
         series = self.series
