@@ -400,6 +400,8 @@ def _replay(
         "frames_reading_unrecorded_pixels": unrecorded,
         "damage": damage,
     }
+    for output in outputs:
+        extra.update(output.stats())
     return RunOutcome(RunSummary.from_run(result, records), extra)
 
 
