@@ -4,6 +4,8 @@ Subcommands, each parsed and handled in its own module of this package:
     track          correlate points of interest between a reference image and target images.
     plan           motion blur of an exposure, and the exposure and frame period for a blur
                    budget.
+    detect         find the specimen in an image (centre, axis, width, parallel length) and
+                   the gauge marks a test would place on it.
     run            a tensile test: measure strain until a strain limit or the break (`--sim`:
                    the simulated test, with its ground truth and errors in the summary).
     serve          run as a service: a test per start command, Modbus, Rerun, systemd watchdog.
@@ -35,7 +37,17 @@ import sys
 from collections.abc import Sequence
 
 from appliance import __version__
-from appliance.cli import bench, calibrate, devices, plan, recording, run, track, verify
+from appliance.cli import (
+    bench,
+    calibrate,
+    detect,
+    devices,
+    plan,
+    recording,
+    run,
+    track,
+    verify,
+)
 from appliance.cli.arguments import Parser
 from appliance.errors import InputError
 
@@ -56,6 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
     calibrate.add_parser(commands)
     bench.add_parser(commands)
     plan.add_parser(commands)
+    detect.add_parser(commands)
     run.add_parsers(commands)
     recording.add_parsers(commands)
     devices.add_parsers(commands)
