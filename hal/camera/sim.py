@@ -7,7 +7,7 @@ What it models: exposure timing for INTERNAL (fixed rate), SOFTWARE and EXTERNAL
 (an external edge is delivered by `external_edge(t_s)`, or asked of the `trigger_line` the
 camera is wired to, as a trigger microcontroller's output would drive it);
 exposure integration (the scene renders over [start, start + exposure]); gain as a factor on
-the signal; Gaussian read noise and Poisson shot noise; quantisation to Mono8 or Mono12/16
+the signal; read noise and shot noise (see `digitise`); quantisation to Mono8 or Mono12/16
 with clipping; the sensor region; frame ids and device timestamps (start of exposure, ns, from
 the simulation clock).
 
@@ -240,13 +240,50 @@ class SimCamera:
         return self._pending.popleft()
 
     def _digitise(self, signal: np.ndarray) -> np.ndarray:
-        fmt = self._settings.pixel_format
-        gain = 10.0 ** (self._settings.gain_db / 20.0)
-        grey = np.asarray(signal, dtype=np.float64) * gain
-        if self._electrons_per_grey > 0:
-            electrons = np.clip(grey, 0.0, None) * self._electrons_per_grey
-            grey = self._rng.poisson(electrons) / self._electrons_per_grey
-        if self._read_noise > 0:
-            grey = grey + self._rng.normal(0.0, self._read_noise, grey.shape)
-        counts = np.clip(np.rint(grey * (fmt.max_value + 1) / 256.0), 0, fmt.max_value)
-        return counts.astype(np.uint8 if fmt is PixelFormat.MONO8 else np.uint16)
+        return digitise(
+            signal,
+            self._rng,
+            gain_db=self._settings.gain_db,
+            electrons_per_grey=self._electrons_per_grey,
+            read_noise_grey=self._read_noise,
+            pixel_format=self._settings.pixel_format,
+        )
+
+
+def digitise(
+    signal: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    gain_db: float,
+    electrons_per_grey: float,
+    read_noise_grey: float,
+    pixel_format: PixelFormat,
+) -> np.ndarray:
+    """Expose `signal` (mean grey levels on the 8-bit scale at unit gain) as the sensor would.
+
+    Gain multiplies the signal; shot noise (Poisson in the electrons collected,
+    `electrons_per_grey` per grey level at unit gain; 0 = none) and read noise (standard
+    deviation `read_noise_grey`) are added as one Gaussian draw per pixel whose variance is
+    their sum, `gain * grey / electrons_per_grey + read_noise_grey**2`, in float32: the mean
+    and the variance of every pixel are the model's, and only the Poisson law's skew
+    (1/sqrt(electrons), 0.16 at one grey level of 40 electrons) is left out, far below a
+    quantisation step. The result is rounded to the pixel format's counts and clipped.
+
+    Returns:
+        the frame's pixels: uint8 for Mono8, uint16 otherwise.
+    """
+    gain = np.float32(10.0 ** (gain_db / 20.0))
+    grey = np.multiply(signal, gain, dtype=np.float32)
+    variance = np.full(grey.shape, np.float32(read_noise_grey) ** 2, dtype=np.float32)
+    if electrons_per_grey > 0:
+        shot = np.maximum(grey, np.float32(0.0))
+        shot *= np.float32(gain / electrons_per_grey)
+        variance += shot
+    noise = rng.standard_normal(grey.shape, dtype=np.float32)
+    np.sqrt(variance, out=variance)
+    noise *= variance
+    grey += noise
+    grey *= np.float32((pixel_format.max_value + 1) / 256.0)
+    np.rint(grey, out=grey)
+    np.clip(grey, 0, pixel_format.max_value, out=grey)
+    return grey.astype(np.uint8 if pixel_format is PixelFormat.MONO8 else np.uint16)

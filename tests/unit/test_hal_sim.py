@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 
 from hal.camera.base import CameraSettings, PixelFormat, Region, TriggerInfo, TriggerMode
+from hal.camera.sim import digitise
 from hal.clock import Pace, SimClock
 from hal.errors import HardwareConfigError, HardwareTimeout
 from hal.machine.base import MachineState
@@ -131,6 +132,41 @@ def test_noise_is_seeded_and_has_the_requested_level():
     assert np.array_equal(a, b) and not np.array_equal(a, c)
     clean = np.tile(100.0 + 10 * 5e-6 + np.arange(64.0), (48, 1))
     assert np.std(a - clean) == pytest.approx(2.0, rel=0.1)
+
+
+def test_shot_and_read_noise_have_the_model_mean_and_variance():
+    """Per grey level, the digitised pixels' mean is the signal times the gain and their
+    variance gain * grey / electrons_per_grey + read_noise**2 (Mono16: quantisation apart)."""
+    rng = np.random.default_rng(3)
+    levels = [2.0, 20.0, 60.0, 110.0]
+    signal = np.repeat(np.float32(levels), 200_000).reshape(len(levels), -1)
+    for gain_db in (0.0, 6.0):
+        gain = 10.0 ** (gain_db / 20.0)
+        counts = digitise(
+            signal,
+            rng,
+            gain_db=gain_db,
+            electrons_per_grey=40.0,
+            read_noise_grey=0.5,
+            pixel_format=PixelFormat.MONO16,
+        )
+        grey = counts.astype(float) / 256.0
+        for level, row in zip(levels, grey, strict=True):
+            expected_var = gain * gain * level / 40.0 + 0.25
+            assert row.mean() == pytest.approx(
+                gain * level, abs=5 * np.sqrt(expected_var / row.size)
+            )
+            assert row.var() == pytest.approx(expected_var, rel=0.02)
+
+
+def test_digitised_pixels_clip_at_the_format_limits():
+    signal = np.array([[-5.0, 0.0, 300.0, 255.0]], dtype=np.float32)
+    rng = np.random.default_rng(0)
+    common = {"gain_db": 0.0, "electrons_per_grey": 0.0, "read_noise_grey": 0.0}
+    mono8 = digitise(signal, rng, pixel_format=PixelFormat.MONO8, **common)
+    mono16 = digitise(signal, rng, pixel_format=PixelFormat.MONO16, **common)
+    assert mono8.dtype == np.uint8 and mono8.tolist() == [[0, 0, 255, 255]]
+    assert mono16.dtype == np.uint16 and mono16.tolist() == [[0, 0, 65535, 65280]]
 
 
 def test_sim_machine_reads_the_shared_clock_and_obeys_configuration():
