@@ -74,6 +74,7 @@ def cases(quick: bool) -> list[tuple[str, Config, str]]:
 def throughput(frames: int = 200) -> dict[str, Any]:
     """Tracking rate with 10 points on 1 MP frames of a simulated metal test, rendering apart."""
     from appliance.measure.gauges import Calibration, StrainGauges, place_marks
+    from appliance.measure.specimen_detection import detect_specimen
     from appliance.measure.tracking import MarkTracker, TrackerSettings
     from appliance.sim.world import PRESETS, SimWorld
     from hal.camera.base import CameraSettings, TriggerInfo, TriggerMode
@@ -89,10 +90,12 @@ def throughput(frames: int = 200) -> dict[str, Any]:
     images = [camera.fetch(1.0) for _ in range(frames + 1)]
     render_s = time.perf_counter() - started
     calibration = Calibration(world.optics.scale_mm_per_px)
+    specimen = detect_specimen(images[0].image)
     points, layout = place_marks(
-        world.specimen_centre_px,
+        specimen.centre_px,
         world.gauge_length_mm,
         calibration,
+        axis_deg=specimen.axis_deg,
         mark_width_px=32.0,
         points_per_mark=5,
         along_axis=True,

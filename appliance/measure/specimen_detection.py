@@ -9,20 +9,25 @@ backdrop), a little rotated, off-centre, with the grips in view:
    threshold (refused when the split does not separate two populations: a uniform image), the
    background being the class that holds most of the image's border; the connected regions
    of the foreground larger than `MIN_AREA_FRACTION` of the image are the candidates (none: no
-   specimen; two of comparable size: two objects);
+   specimen; two of comparable size: two objects); the chosen one's holes are filled;
 2. a first axis from the region's second moments, then twice: the image resampled along that
    axis (rows along it, one pixel apart, columns across it), averaged along the axis over
    `EDGE_SMOOTHING_PX` rows to wash out a speckle, and on every row the two edges nearest the
    axis located to a fraction of a pixel where the profile crosses halfway between the grey
-   levels just outside and just inside the edge;
+   levels just outside and just inside the edge; a row whose width stands out from its
+   neighbours' (a speckle fooled the edge search) is left out;
 3. the parallel length: the longest run of rows whose width stays within `PARALLEL_TOLERANCE`
    of the narrowest width (a shoulder, a tab or a grip is wider); its ends are where the width
    has departed from the parallel width by that tolerance, so they lie a little beyond the
-   tangent points of the transition arcs (about 1.7 mm for an ISO 37 type 1 dumb-bell). A run
-   that reaches the edge of the image is refused: its ends, and so its centre, are not in view;
+   tangent points of the transition arcs (about 1.7 mm for an ISO 37 type 1 dumb-bell). Its
+   centre along the axis is the mean of the midpoints between the two shoulders' crossings of
+   that level and of 2, 4, ... 32 times it: the shoulders' symmetry fixes it to a fraction of
+   a pixel where the flat start of the arcs would not. A parallel length that touches the
+   image's side is refused; one that runs out of the image at one end too (its centre is not
+   in view); one that runs out at both ends (a view shorter than it) is centred on the view;
 4. a straight line fitted to each edge over the middle 80 % of the run (points beyond 3 median
    deviations dropped once): the axis is their mean direction, the width their distance across
-   it at the centre, the centre halfway between the ends, halfway between the edges.
+   it at the centre, the centre halfway between the edges.
 
 Angles follow `[gauge] axis_deg`: degrees from the image's +x towards +y, in [0, 180) (90 = a
 vertical specimen). Pixel centres are at integer coordinates, x = column, y = row.
@@ -74,6 +79,9 @@ class SpecimenDetection:
             first at the smaller y (the smaller x for a horizontal specimen).
         parallel_length_px: distance between the ends, px.
         edge_rms_px: root mean square of the edge points about their fitted lines, px.
+        ends_in_view: False when the parallel length runs out of the image at both ends (a
+            view shorter than it): the ends are then the image's, and the centre along the
+            axis the middle of the view's part of it.
         dark_on_bright: the specimen is darker than its background (back-lit).
         outline_px: (n, 2) the outline of the region found (the specimen, with any grip that
             touches it), px, for display.
@@ -85,6 +93,7 @@ class SpecimenDetection:
     parallel_ends_px: tuple[tuple[float, float], tuple[float, float]]
     parallel_length_px: float
     edge_rms_px: float
+    ends_in_view: bool
     dark_on_bright: bool
     outline_px: np.ndarray
 
@@ -104,6 +113,7 @@ class SpecimenDetection:
             "parallel_length_px": self.parallel_length_px,
             "parallel_ends_px": [list(end) for end in self.parallel_ends_px],
             "edge_rms_px": self.edge_rms_px,
+            "ends_in_view": self.ends_in_view,
             "lighting": "dark on bright" if self.dark_on_bright else "bright on dark",
         }
 
@@ -137,7 +147,7 @@ def detect_specimen(image: np.ndarray) -> SpecimenDetection:
     theta = 0.5 * math.atan2(2 * mu[0, 1], mu[0, 0] - mu[1, 1])
     for _ in range(2):
         centre, theta, figures = _measure_along(grey, region, points, centre, theta)
-    width, ends, rms = figures
+    width, ends, rms, ends_in_view = figures
     axis_deg = math.degrees(theta) % 180.0
     first, second = ends
     if (first[1], first[0]) > (second[1], second[0]):
@@ -149,6 +159,7 @@ def detect_specimen(image: np.ndarray) -> SpecimenDetection:
         parallel_ends_px=((float(first[0]), float(first[1])), (float(second[0]), float(second[1]))),
         parallel_length_px=float(np.hypot(*(second - first))),
         edge_rms_px=rms,
+        ends_in_view=ends_in_view,
         dark_on_bright=region.sign < 0,
         outline_px=region.outline_px,
     )
@@ -218,9 +229,10 @@ def _measure_along(
     points: np.ndarray,
     centre: np.ndarray,
     theta: float,
-) -> tuple[np.ndarray, float, tuple[float, tuple[np.ndarray, np.ndarray], float]]:
+) -> tuple[np.ndarray, float, tuple[float, tuple[np.ndarray, np.ndarray], float, bool]]:
     """One pass: resample along `theta` through `centre`, locate the edges, find the parallel
-    length and fit its edges. Returns the new centre, axis and (width, ends, rms)."""
+    length and fit its edges. Returns the new centre, axis and (width, ends, rms, ends in
+    view)."""
     along = np.array([math.cos(theta), math.sin(theta)])
     across = np.array([-along[1], along[0]])
     s = (points - centre) @ along
@@ -259,15 +271,23 @@ def _measure_along(
     if run is None:
         raise SpecimenNotFound("the specimen has no parallel length long enough to measure")
     start, stop = run
-    if np.any(touching[start:stop]) or any(
-        0 <= i < len(widths) and not in_view[i, centre_col] for i in (start - 1, stop)
-    ):
-        x, y = centre + 0.5 * (s_grid[start] + s_grid[stop - 1]) * along
+    if np.any(touching[start:stop]):
+        rows = np.nonzero(touching[start:stop])[0] + start
+        x, y = centre + s_grid[rows[len(rows) // 2]] * along
         raise SpecimenNotFound(
-            f"the specimen's parallel length (near ({x:.0f}, {y:.0f}) px) touches or runs out "
-            "of the image's edge: its ends are not in view"
+            f"the specimen's parallel length touches the image's edge near ({x:.0f}, {y:.0f}) px"
         )
-    first_end, s_centre, last_end = _ends(s_grid, widths, start, stop)
+    first_end, s_centre, last_end = _ends(s_grid, widths, start, stop, in_view[:, centre_col])
+    if (first_end is None) != (last_end is None):
+        x, y = centre + s_grid[start if first_end is None else stop - 1] * along
+        raise SpecimenNotFound(
+            f"the specimen's parallel length runs out of the image at ({x:.0f}, {y:.0f}) px: "
+            "its end, and so its centre, are not in view"
+        )
+    ends_in_view = first_end is not None
+    if first_end is None or last_end is None:
+        first_end, last_end = float(s_grid[start]), float(s_grid[stop - 1])
+        s_centre = 0.5 * (first_end + last_end)
     trim = max(1, int(0.1 * (stop - start)))
     rows = np.arange(start + trim, stop - trim)
     left_line, left_rms = _robust_line(s_grid[rows], t_grid[0] + left[rows])
@@ -285,7 +305,7 @@ def _measure_along(
     )
     ends = (on_axis(first_end), on_axis(last_end))
     rms = float(math.sqrt(0.5 * (left_rms**2 + right_rms**2)))
-    return on_axis(s_mid), theta + tilt, (width_px, ends, rms)
+    return on_axis(s_mid), theta + tilt, (width_px, ends, rms, ends_in_view)
 
 
 def _edges(
@@ -380,8 +400,8 @@ def _parallel_run(widths: np.ndarray) -> tuple[int, int] | None:
 
 
 def _ends(
-    s_grid: np.ndarray, widths: np.ndarray, start: int, stop: int
-) -> tuple[float, float, float]:
+    s_grid: np.ndarray, widths: np.ndarray, start: int, stop: int, in_view: np.ndarray
+) -> tuple[float | None, float, float | None]:
     """The parallel length's ends and its centre along the axis (positions on `s_grid`).
 
     The ends are where the width, going outward from the run [start, stop), first exceeds the
@@ -389,36 +409,44 @@ def _ends(
     midpoints between the two sides' crossings of that level and of 2, 4, ... 32 times it,
     as far as both sides reach them within a quarter of the run beyond its ends (the steep
     part of the shoulders, before any grip): the shoulders' symmetry fixes it better than the
-    flat start of the transition arcs does.
+    flat start of the transition arcs does. An end is None where the width does not depart
+    from the parallel width before the image ends (`in_view` False).
     """
     smooth = _running_mean(widths, 5)
     reference = float(np.nanmedian(smooth[start:stop]))
     tolerance = max(PARALLEL_TOLERANCE[0], PARALLEL_TOLERANCE[1] * reference)
     reach = max(1, (stop - start) // 4)
     midpoints = []
-    ends = (float(s_grid[start]), float(s_grid[stop - 1]))
+    ends: tuple[float | None, float | None] = (None, None)
     for k in range(6):
         level = reference + tolerance * 2**k
-        low = _outward_crossing(s_grid, smooth, start, -1, level, reach)
-        high = _outward_crossing(s_grid, smooth, stop - 1, 1, level, reach)
-        if low is None or high is None:
-            break
+        low = _outward_crossing(s_grid, smooth, start, -1, level, reach, in_view)
+        high = _outward_crossing(s_grid, smooth, stop - 1, 1, level, reach, in_view)
         if k == 0:
             ends = (low, high)
+        if low is None or high is None:
+            break
         midpoints.append(0.5 * (low + high))
-    centre = float(np.mean(midpoints)) if midpoints else 0.5 * (ends[0] + ends[1])
+    centre = float(np.mean(midpoints)) if midpoints else math.nan
     return ends[0], centre, ends[1]
 
 
 def _outward_crossing(
-    s_grid: np.ndarray, widths: np.ndarray, row: int, step: int, level: float, reach: int
+    s_grid: np.ndarray,
+    widths: np.ndarray,
+    row: int,
+    step: int,
+    level: float,
+    reach: int,
+    in_view: np.ndarray,
 ) -> float | None:
     """Position where `widths`, walked from `row` in direction `step` over the rows that have
-    one, first rises above `level`; None when it does not within `reach` rows."""
+    one, first rises above `level`; None when it does not within `reach` rows or before the
+    image ends."""
     if not widths[row] <= level:
         return float(s_grid[row])
     for nxt in range(row + step, row + step * (reach + 1), step):
-        if not 0 <= nxt < len(widths):
+        if not 0 <= nxt < len(widths) or not in_view[nxt]:
             return None
         if not np.isfinite(widths[nxt]):
             continue
