@@ -10,6 +10,11 @@
   simulator would know must then be configured: `[optics]`, `[gauge] length_mm`,
   `[run] speed_mm_min`.
 
+Both place the gauge alike (`gauge_centre_for`): centred on the specimen detected in the
+reference frame (`appliance.measure.specimen_gauge`), or at `[gauge] centre_x_px`,
+`centre_y_px` along `[gauge] axis_deg` when both are configured. The simulated world's own
+knowledge of where the specimen is never places it.
+
 `Rig.open` opens and configures them and prepares the triggering; `Rig.close` closes every
 device on every path, the trigger microcontroller's link included. `check_devices` runs the
 same checks without opening anything (the service does it before it says it is ready).
@@ -26,6 +31,8 @@ from appliance.devices.mcu_trigger import McuTriggerLine, connect_trigger_line
 from appliance.devices.polled_machine import PolledMachine
 from appliance.devices.trigger_stamping import TriggerStampedCamera
 from appliance.errors import InputError
+from appliance.measure.specimen_detection import SpecimenNotFound
+from appliance.measure.specimen_gauge import CONFIGURED, GaugeCentre, detected_gauge_centre
 from appliance.plan.exposure import ExposurePlan
 from appliance.plan.optics import Optics, configured_optics
 from appliance.plan.pacing import TriggerTimer
@@ -50,7 +57,8 @@ class Rig:
         optics: the configured optics (or the simulated preset's).
         speed_mm_min: the test speed.
         gauge_length_mm: the gauge length asked for, mm.
-        centre_px: the centre of the marks on the reference frame.
+        gauge_centre: the centre and axis of the marks on the reference frame, and how they
+            were found (`gauge_centre_for`).
         commands: whether the appliance starts and stops the crosshead.
         block_when_full: the loop waits for room instead of dropping frames (a simulation
             running as fast as possible, whose clock moves only when a frame is fetched).
@@ -64,7 +72,7 @@ class Rig:
     optics: Optics
     speed_mm_min: float
     gauge_length_mm: float
-    centre_px: Callable[[Frame], tuple[float, float]]
+    gauge_centre: Callable[[Frame], GaugeCentre]
     commands: bool
     block_when_full: bool
     world: SimWorld | None = None
@@ -178,12 +186,7 @@ def _simulated_rig(config: Config) -> Rig:
         )
     optics = configured_optics(config, PRESETS[config.sim.material].optics)
     world = SimWorld.from_config(config, optics)
-    g = config.gauge
-    centre = (
-        (g.centre_x_px, g.centre_y_px)
-        if g.centre_x_px is not None and g.centre_y_px is not None
-        else world.specimen_centre_px
-    )
+    gauge_centre = gauge_centre_for(config)
     _check_trigger_url(config, simulate=True)
     machine: TestingMachine = world.controller
     if config.sim.controller == "modbus-tcp":
@@ -196,7 +199,7 @@ def _simulated_rig(config: Config) -> Rig:
         optics=optics,
         speed_mm_min=world.speed_mm_min,
         gauge_length_mm=config.gauge.length_mm or world.gauge_length_mm,
-        centre_px=lambda reference: centre,
+        gauge_centre=gauge_centre,
         commands=True,
         block_when_full=world.pace is Pace.FAST,
         world=world,
@@ -223,24 +226,48 @@ def _hardware_rig(config: Config) -> Rig:
             accepts_commands=config.machine.accepts_commands,
         )
         machine = PolledMachine(controller, rate_hz=config.machine.poll_rate_hz)
-    g = config.gauge
-
-    def centre(reference: Frame) -> tuple[float, float]:
-        height, width = reference.image.shape[:2]
-        x = g.centre_x_px if g.centre_x_px is not None else (width - 1) / 2
-        y = g.centre_y_px if g.centre_y_px is not None else (height - 1) / 2
-        return float(x), float(y)
-
+    gauge_centre = gauge_centre_for(config)
     return Rig(
         camera=camera,
         machine=machine,
         optics=optics,
         speed_mm_min=speed,
         gauge_length_mm=config.gauge.length_mm,
-        centre_px=centre,
+        gauge_centre=gauge_centre,
         commands=machine is not None and config.machine.accepts_commands,
         block_when_full=False,
     )
+
+
+def gauge_centre_for(config: Config) -> Callable[[Frame], GaugeCentre]:
+    """Where the gauge of a test goes on its reference frame: at `[gauge] centre_x_px`,
+    `centre_y_px` along `[gauge] axis_deg` when both are set, else centred on the parallel
+    length of the specimen detected in the frame, along its axis.
+
+    Raises:
+        InputError: only one of the centre's keys is set (here); from the returned function,
+            a reference frame in which no single specimen can be measured, naming what was
+            seen.
+    """
+    g = config.gauge
+    if (g.centre_x_px is None) != (g.centre_y_px is None):
+        raise InputError(
+            "[gauge] centre_x_px, centre_y_px: set both (a configured centre) or neither "
+            "(the gauge is centred on the specimen found in the reference frame)"
+        )
+    if g.centre_x_px is not None and g.centre_y_px is not None:
+        configured = GaugeCentre((g.centre_x_px, g.centre_y_px), g.axis_deg, CONFIGURED)
+        return lambda reference: configured
+
+    def detected(reference: Frame) -> GaugeCentre:
+        try:
+            return detected_gauge_centre(reference.image)
+        except SpecimenNotFound as exc:
+            raise InputError(
+                f"reference frame: {exc} (or set [gauge] centre_x_px and centre_y_px)"
+            ) from None
+
+    return detected
 
 
 def _check_trigger_url(config: Config, *, simulate: bool) -> None:

@@ -10,8 +10,11 @@
    within the blur budget and the frame rate that keeps the marks' frame-to-frame motion
    inside the tracker's search; while the test runs, exposure and trigger spacing follow
    the speed the machine reports (`appliance.plan.pacing`);
-3. marks: placed on the reference frame, centred on the specimen, at the configured gauge
-   length; each axial mark a short line of points; lengths are measured in mm on the specimen
+3. marks: placed on the reference frame, centred on the specimen's parallel length along its
+   axis as detected in that frame (or at the configured centre, `appliance.rig`), at the
+   configured gauge length, refused when they do not fit the parallel length; the summary and
+   the recording say how the gauge was placed and the gauge length achieved; each axial mark
+   a short line of points; lengths are measured in mm on the specimen
    plane through `[optics] calibration` when it names a file (read once, before any device
    opens: a file that is bad or made for another sensor size or region refuses the test),
    else by the nominal scale of the optics (`appliance.run.object_plane`);
@@ -47,6 +50,7 @@ from appliance.errors import InputError
 from appliance.measure.frame_measurer import StopCriteria, StrainSample, tracker_and_gauges
 from appliance.measure.gauges import Calibration, StrainGauges, marks_outside, place_marks
 from appliance.measure.image_quality import speckle_problem
+from appliance.measure.specimen_gauge import marks_beyond_parallel_length
 from appliance.measure.tracking import MarkTracker, warm_up_kernels
 from appliance.plan.exposure import ExposurePlan, exposure_for
 from appliance.plan.pacing import ExposurePacer, Replan
@@ -386,18 +390,20 @@ class _Reference:
         self.outputs = outputs
         self.facts = facts
         self.points_placed = 0
+        self.placement: dict[str, Any] = {}
 
     def place_marks(self, reference: Frame) -> tuple[MarkTracker, StrainGauges]:
         """The loop's set-up: marks on the reference frame, tracker and gauges on them."""
         config, rig = self.config, self.rig
         g = config.gauge
         check_image_size(self.calibration, reference.image.shape[1], reference.image.shape[0])
+        centre = rig.gauge_centre(reference)
         try:
             points, layout = place_marks(
-                rig.centre_px(reference),
+                centre.centre_px,
                 rig.gauge_length_mm,
                 self.calibration,
-                axis_deg=g.axis_deg,
+                axis_deg=centre.axis_deg,
                 mark_width_px=g.mark_spacing_px * (g.points_per_mark - 1),
                 points_per_mark=g.points_per_mark,
                 transverse_width_mm=g.transverse_width_mm or None,
@@ -408,6 +414,10 @@ class _Reference:
         outside = marks_outside(points, reference.image.shape, config.tracking.min_subset_px)
         if outside is not None:
             raise InputError(f"[gauge] length_mm: {outside}: shorten the gauge or move its centre")
+        if centre.detection is not None:
+            beyond = marks_beyond_parallel_length(points, centre.detection)
+            if beyond is not None:
+                raise InputError(f"[gauge] length_mm: {beyond}")
         _check_speckle(reference.image, points, layout.marks, config)
         if rig.world is not None:
             self.samples.truth = rig.world.gauge_truth(points, layout.axial, reference)
@@ -415,6 +425,8 @@ class _Reference:
         tracker, gauges = tracker_and_gauges(
             config.tracking, reference.image, points, layout, self.calibration
         )
+        self.placement = {**centre.facts(), "gauge_length_achieved_mm": gauges.gauge_length_mm}
+        self.facts.update(self.placement)
         exposure_end_ns = reference.timestamp_ns + int(round(reference.exposure_us * 1e3))
         run_facts = RunFacts(
             config=config,
@@ -523,6 +535,7 @@ def _run_counts(
         "max_blur_px_at_marks": samples.max_blur_px,
         "test_duration_s": samples.last_time_s,
         "points": reference.points_placed,
+        **reference.placement,
         "run_states": [t.target.value for t in loop.state.history],
         "camera_outages": result.camera_outages,
         "camera_outage_s": result.camera_outage_s,
