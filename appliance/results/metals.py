@@ -8,7 +8,8 @@ of the broken specimen is not valid). Each result names the samples it was taken
   `RM_DROP_FRACTION` (0.5 %) below its maximum afterwards, or the specimen broke; a test
   that ends while the force still rises has not shown its maximum.
 * **ReH, ReL**, upper and lower yield strength (discontinuous yielding only): ReH is the
-  stress before the first fall of force by `YIELD_DROP_FRACTION` (1 %) before Rm; ReL the
+  stress before the first fall of force by `YIELD_DROP_FRACTION` (1 %) before Rm, from a
+  stress of at least `YIELD_MIN_FRACTION` (20 %) of Rm (noise at the start is no yield); ReL the
   lowest stress of the yield phase that follows (up to where the stress rises past ReH again,
   or Rm), leaving out the initial transient (the first local minimum, when there are
   several). Without such a fall the material yields continuously, and both are reported as
@@ -47,6 +48,7 @@ from appliance.results.series import TestSeries
 
 RM_DROP_FRACTION = 0.005
 YIELD_DROP_FRACTION = 0.01
+YIELD_MIN_FRACTION = 0.2
 MODULUS_FIT_RANGE = (0.10, 0.50)
 FIRST_FIT_RANGE = (0.10, 0.40)
 MIN_FIT_SAMPLES = 5
@@ -142,7 +144,8 @@ class _Curve:
         """ReH and ReL, or both not determined (continuous yielding)."""
         stress = self.stress[: self.peak + 1]
         running = np.maximum.accumulate(stress)
-        falls = np.flatnonzero(stress < running * (1.0 - YIELD_DROP_FRACTION))
+        loaded = running >= YIELD_MIN_FRACTION * stress.max()
+        falls = np.flatnonzero(loaded & (stress < running * (1.0 - YIELD_DROP_FRACTION)))
         if falls.size == 0:
             reason = (
                 f"continuous yielding: the force did not fall {100 * YIELD_DROP_FRACTION:g} % "
