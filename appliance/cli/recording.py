@@ -1,7 +1,10 @@
 """`extensometer replay` and `extensometer info`: recordings measured again, and summarised.
 
 `replay` measures a recorded test again from its recorded pixels
-(`appliance.recording.replay.replay_recording`) and exits 1 when the file is damaged (one line
+(`appliance.recording.replay.replay_recording`), with the test's results in its summary and
+its report page (`appliance.results`) written beside the recording as `NAME.replay.html` (or
+to `--report FILE.html`; a page that cannot be written is said in one line, exit status 1),
+and exits 1 when the file is damaged (one line
 on stderr: the damage, how many of the recorded samples were measured, and where the reference
 frame was read when not from its attachment) or, without an override, when any sample differs
 from the recording; `info` reads a recording front to back with every CRC checked
@@ -37,6 +40,12 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
     replay.add_argument(
         "--config", type=Path, metavar="OVERRIDE", help="TOML tables replacing recorded keys"
     )
+    replay.add_argument(
+        "--report",
+        type=Path,
+        metavar="FILE.html",
+        help="the report page (default: beside the recording, NAME.replay.html)",
+    )
     arguments.add_rerun_options(replay)
     replay.add_argument("--json", action="store_true", help="print the summary as JSON, quietly")
     replay.set_defaults(handler=replay_test)
@@ -57,23 +66,30 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
 def replay_test(args: argparse.Namespace) -> int:
     """Run `replay`; returns the exit status."""
     from appliance.recording.replay import is_exact, replay_recording
+    from appliance.results.report_output import TestReport
 
     progress = None if args.json or not sys.stderr.isatty() else sys.stderr
     viewer = viewer_of(arguments.configuration(None, args))
-    outputs = [viewer] if viewer is not None else []
-    for output in outputs:
+    viewers = [viewer] if viewer is not None else []
+    for output in viewers:
         output.start()
+    report = TestReport()
     try:
         outcome = replay_recording(
-            args.recording, override=args.config, outputs=outputs, progress=progress
+            args.recording, override=args.config, outputs=[report, *viewers], progress=progress
         )
     finally:
-        for output in outputs:
+        for output in viewers:
             output.close()
+    page = args.report or args.recording.with_name(f"{args.recording.stem}.replay.html")
+    report.write(page, outcome)
     if args.json:
         print(outcome.to_json())
     else:
         print_summary(outcome)
+    if outcome.extra["report"] != str(page):
+        print(f"extensometer: {outcome.extra['report']}", file=sys.stderr)
+        return 1
     if outcome.extra.get("damage"):
         print(f"extensometer: {args.recording}: {outcome.summary.reason}", file=sys.stderr)
         return 1
