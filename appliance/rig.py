@@ -11,8 +11,9 @@
   `[run] speed_mm_min`.
 
 Both place the gauge alike (`gauge_centre_for`): centred on the specimen detected in the
-reference frame (`appliance.measure.specimen_gauge`), or at `[gauge] centre_x_px`,
-`centre_y_px` along `[gauge] axis_deg` when both are configured. The simulated world's own
+reference frame (`appliance.measure.specimen_gauge`; on the image's centre when the specimen
+fills the view), or at `[gauge] centre_x_px`, `centre_y_px` along `[gauge] axis_deg` when
+both are configured. The simulated world's own
 knowledge of where the specimen is never places it.
 
 `Rig.open` opens and configures them and prepares the triggering; `Rig.close` closes every
@@ -31,8 +32,13 @@ from appliance.devices.mcu_trigger import McuTriggerLine, connect_trigger_line
 from appliance.devices.polled_machine import PolledMachine
 from appliance.devices.trigger_stamping import TriggerStampedCamera
 from appliance.errors import InputError
-from appliance.measure.specimen_detection import SpecimenNotFound
-from appliance.measure.specimen_gauge import CONFIGURED, GaugeCentre, detected_gauge_centre
+from appliance.measure.specimen_detection import NothingStandsOut, SpecimenNotFound
+from appliance.measure.specimen_gauge import (
+    CONFIGURED,
+    IMAGE_CENTRE,
+    GaugeCentre,
+    detected_gauge_centre,
+)
 from appliance.plan.exposure import ExposurePlan
 from appliance.plan.optics import Optics, configured_optics
 from appliance.plan.pacing import TriggerTimer
@@ -242,7 +248,10 @@ def _hardware_rig(config: Config) -> Rig:
 def gauge_centre_for(config: Config) -> Callable[[Frame], GaugeCentre]:
     """Where the gauge of a test goes on its reference frame: at `[gauge] centre_x_px`,
     `centre_y_px` along `[gauge] axis_deg` when both are set, else centred on the parallel
-    length of the specimen detected in the frame, along its axis.
+    length of the specimen detected in the frame, along its axis. A frame in which nothing
+    stands out from the background (a speckle from edge to edge: a specimen that fills the
+    view) centres the gauge on the image along `[gauge] axis_deg`; the speckle check then
+    refuses a frame that holds nothing to track.
 
     Raises:
         InputError: only one of the centre's keys is set (here); from the returned function,
@@ -262,6 +271,9 @@ def gauge_centre_for(config: Config) -> Callable[[Frame], GaugeCentre]:
     def detected(reference: Frame) -> GaugeCentre:
         try:
             return detected_gauge_centre(reference.image)
+        except NothingStandsOut:
+            height, width = reference.image.shape[:2]
+            return GaugeCentre(((width - 1) / 2, (height - 1) / 2), g.axis_deg, IMAGE_CENTRE)
         except SpecimenNotFound as exc:
             raise InputError(
                 f"reference frame: {exc} (or set [gauge] centre_x_px and centre_y_px)"

@@ -67,6 +67,11 @@ class SpecimenNotFound(ValueError):
     (one line)."""
 
 
+class NothingStandsOut(SpecimenNotFound):
+    """The image is one population of grey levels: no specimen in view, or a specimen that
+    fills the view (a speckle from edge to edge)."""
+
+
 @dataclass(frozen=True)
 class SpecimenDetection:
     """A specimen found in an image.
@@ -174,7 +179,7 @@ def _segment(grey: np.ndarray) -> _Region:
     small = cv2.GaussianBlur(small, (0, 0), 1.5)
     low, high = np.percentile(small, [0.5, 99.5])
     if not high - low > 1e-6 * max(abs(high), 1.0):
-        raise SpecimenNotFound(f"no specimen: the image is uniform (grey level {low:.4g})")
+        raise NothingStandsOut(f"no specimen: the image is uniform (grey level {low:.4g})")
     scaled = np.clip((small - low) / (high - low) * 255.0, 0, 255).astype(np.uint8)
     threshold, binary = cv2.threshold(scaled, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
     fg = binary > 0
@@ -186,7 +191,7 @@ def _segment(grey: np.ndarray) -> _Region:
         else 0.0
     )
     if total_var == 0 or between / total_var < MIN_SEPARATION:
-        raise SpecimenNotFound(
+        raise NothingStandsOut(
             f"no specimen: nothing stands out from the background (grey levels {low:.4g} to "
             f"{high:.4g} in one population)"
         )

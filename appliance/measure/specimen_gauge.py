@@ -19,6 +19,7 @@ from appliance.measure.specimen_detection import SpecimenDetection, detect_speci
 
 DETECTED = "detected"
 CONFIGURED = "configured"
+IMAGE_CENTRE = "image centre"
 
 
 @dataclass(frozen=True)
@@ -28,8 +29,10 @@ class GaugeCentre:
     Attributes:
         centre_px: (x, y), px.
         axis_deg: the loading axis, degrees from +x towards +y (90 = vertical).
-        placement: "detected" (on the specimen found in the image) or "configured"
-            (`[gauge] centre_x_px`, `centre_y_px`, `axis_deg`).
+        placement: "detected" (on the specimen found in the image), "configured"
+            (`[gauge] centre_x_px`, `centre_y_px`, `axis_deg`) or "image centre" (nothing
+            stands out from the background: a specimen that fills the view, along
+            `[gauge] axis_deg`).
         detection: the specimen found, when detected.
     """
 
