@@ -1,0 +1,146 @@
+"""Results and report.html of whole simulated tests, run and replayed in a real process."""
+
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from appliance.sim.metal import ElasticPlastic
+
+EXTENSOMETER = str(Path(sys.executable).with_name("extensometer"))
+
+METAL_TO_RM = """
+[sim]
+material = "metal"
+sensor_width_px = 320
+speed_change_after_s = 6.0
+speed_change_mm_min = 100.0
+
+[run]
+speed_mm_min = 4.0
+until_strain = 0.17
+
+[camera]
+exposure_us = 500.0
+frame_rate_hz = 20.0
+
+[trigger]
+replan_hysteresis = 0.0
+"""
+"""The quickest simulated steel test past Rm: 4 mm/min through the elastic range and the
+proof strength (about 20 samples in the modulus's fit range), then 100 mm/min to 17 %, past
+the maximum force at Agt = 15.1 %; a narrow sensor, as only the marks' columns are read."""
+
+
+def extensometer(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [EXTENSOMETER, *args], capture_output=True, text=True, timeout=timeout, check=False
+    )
+
+
+def results_table(page: str) -> str:
+    start = page.index('<table id="results">')
+    return page[start : page.index("</table>", start)]
+
+
+def assert_self_contained(page: str) -> None:
+    assert not re.search(r"https?:", page, re.IGNORECASE)
+    assert not re.search(r"""(src|href)=["'](?!data:|#)""", page)
+
+
+@pytest.fixture(scope="module")
+def metal_test(tmp_path_factory):
+    out = tmp_path_factory.mktemp("metal")
+    config = out / "metal.toml"
+    config.write_text(METAL_TO_RM)
+    done = extensometer(
+        "run", "--sim", "--config", str(config), "--out", str(out), "--record", str(out / "t.mcap")
+    )
+    assert done.returncode == 0, done.stderr
+    return out, done.stdout
+
+
+def test_the_simulated_steel_results_meet_their_targets(metal_test):
+    out, _ = metal_test
+    steel = ElasticPlastic.steel_s355()
+    results = json.loads((out / "summary.json").read_text())["results"]
+    assert results["standard"] == "ISO 6892-1" and results["cross_section_mm2"] == 25.0
+    assert results["Rp0.2"]["value"] == pytest.approx(steel.proof_stress_mpa, rel=0.005)
+    assert results["Rm"]["value"] == pytest.approx(steel.tensile_strength_mpa, rel=0.002)
+    assert results["E"]["value"] * 1e3 == pytest.approx(steel.youngs_modulus_mpa, rel=0.01)
+    assert results["A"]["not_determined"] == "the test ended before the fracture"
+    assert results["ReH"]["value"] is None
+    for symbol in ("E", "Rp0.2", "Rm", "Ag"):
+        first, last = results[symbol]["samples"]
+        assert 0 <= first <= last and results[symbol]["basis"]
+
+
+def test_run_writes_the_report_beside_the_summary(metal_test):
+    out, printed = metal_test
+    page = (out / "report.html").read_text()
+    assert_self_contained(page)
+    table = results_table(page)
+    results = json.loads((out / "summary.json").read_text())["results"]
+    assert f"{results['Rp0.2']['value']:.5g} MPa" in table
+    for anchor in ("stress-strain", "time-series", "gauge", "validity", "truth-error"):
+        assert f'id="{anchor}"' in page
+    assert re.search(r"^results +ISO 6892-1: E 2\d\d\.\d+ GPa, Rp0.2 3\d\d", printed, re.M)
+    assert re.search(rf"^report +{re.escape(str(out / 'report.html'))}$", printed, re.M)
+
+
+def test_replay_writes_its_report_beside_the_recording(metal_test):
+    out, _ = metal_test
+    done = extensometer("replay", str(out / "t.mcap"), "--json")
+    assert done.returncode == 0, done.stderr
+    replayed = json.loads(done.stdout)
+    ran = json.loads((out / "summary.json").read_text())
+    assert replayed["results"] == ran["results"]
+    page_path = out / "t.replay.html"
+    assert replayed["report"] == str(page_path)
+    page = page_path.read_text()
+    assert_self_contained(page)
+    assert results_table(page) == results_table((out / "report.html").read_text())
+
+
+def test_a_report_that_cannot_be_written_is_said_in_one_line(metal_test, tmp_path):
+    out, _ = metal_test
+    page = tmp_path / "absent" / "page.html"
+    done = extensometer("replay", str(out / "t.mcap"), "--json", "--report", str(page))
+    assert done.returncode == 1
+    assert done.stderr == f"extensometer: {page}: cannot write (No such file or directory)\n"
+
+
+def test_the_configured_cross_section_is_used_and_early_ends_are_not_determined(tmp_path):
+    config = tmp_path / "rubber.toml"
+    config.write_text(
+        "[sim]\nsensor_width_px = 320\nsensor_height_px = 640\n"
+        "[specimen]\nwidth_mm = 3.0\nthickness_mm = 2.0\n"
+    )
+    done = extensometer(
+        "run", "--sim", "--config", str(config), "--until-strain", "0.02", "--out", str(tmp_path)
+    )
+    assert done.returncode == 0, done.stderr
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    results = summary["results"]
+    assert summary["cross_section_source"] == "[specimen]"
+    assert results["standard"] == "ISO 37" and results["cross_section_mm2"] == 6.0
+    assert results["S100"]["value"] is None
+    assert results["S100"]["not_determined"].startswith("the test ended at 2")
+    assert results["TS"]["not_determined"] == "the test ended before the break"
+    page = (tmp_path / "report.html").read_text()
+    assert_self_contained(page)
+    assert "ISO 37; original cross-section S0 6 mm²" in page
+
+
+def test_a_half_given_cross_section_is_refused_in_one_line(tmp_path):
+    config = tmp_path / "bad.toml"
+    config.write_text("[specimen]\nwidth_mm = 3.0\n")
+    done = extensometer("run", "--sim", "--config", str(config), timeout=120)
+    assert done.returncode == 2
+    assert done.stderr == (
+        f"extensometer: error: {config}: [specimen]: thickness_mm: missing "
+        "(width_mm and thickness_mm go together)\n"
+    )
