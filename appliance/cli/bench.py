@@ -41,6 +41,15 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     _add_out(simulated, required=True)
     simulated.set_defaults(handler=_simulated)
 
+    results = benches.add_parser(
+        "results",
+        help="a test's results (Rp0.2, Rm, E; rubber's TS, Eb, S100..S300) against the "
+        "simulated materials' values",
+    )
+    results.add_argument("--quick", action="store_true", help="one steel test, rubber to 350 %%")
+    _add_out(results, required=True)
+    results.set_defaults(handler=_results)
+
     modbus = benches.add_parser(
         "modbus", help="latency from frame delivery to Modbus register update (10 points)"
     )
@@ -190,6 +199,12 @@ def _simulated(args: argparse.Namespace) -> int:
     from appliance.bench.simulated import run_simulated_benchmark
 
     return run_simulated_benchmark(args.out, quick=args.quick)
+
+
+def _results(args: argparse.Namespace) -> int:
+    from appliance.bench.results_accuracy import run_results_benchmark
+
+    return run_results_benchmark(args.out, quick=args.quick)
 
 
 def _modbus(args: argparse.Namespace) -> int:
