@@ -14,6 +14,7 @@ reports with what the test was run with. The truth of a simulated test comes in 
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import math
 from collections.abc import Callable
@@ -95,7 +96,8 @@ class TestReport:
 
         The summary's `report` then names the page, or says why it could not be written: the
         page only shows what the summary and the strain file hold, so the test's outcome
-        stands either way.
+        stands either way. A page cut short (a full disk) is removed, giving its room back to
+        the summary.
         """
         facts = self._facts.facts if self._facts is not None else {}
         title = f"Tensile test {facts.get('test_id') or ''}".strip()
@@ -110,6 +112,7 @@ class TestReport:
             path.write_text(page, encoding="utf-8")
         except OSError as exc:
             outcome.extra["report"] = f"{path}: cannot write ({exc.strerror})"
+            _remove_partial(path)
             return
         outcome.extra["report"] = str(path)
 
@@ -133,6 +136,11 @@ class TestReport:
             truth_error=plots.truth_error_svg(series) if series.has_truth else None,
             gauge=gauge,
         )
+
+
+def _remove_partial(path: Path) -> None:
+    with contextlib.suppress(OSError):
+        path.unlink(missing_ok=True)
 
 
 _FACT_ROWS = (
