@@ -69,7 +69,7 @@ def detect_command(args: argparse.Namespace) -> int:
     gauge = _gauge(config, centre, detection, image.shape)
     document: dict[str, Any] = {"image": str(args.image), **detection.as_dict(), "gauge": gauge}
     if args.json:
-        print_json(document)
+        print_json(document, sys.stdout)
     else:
         _print_text(document)
     return 0

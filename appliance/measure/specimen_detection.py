@@ -273,9 +273,9 @@ def _measure_along(
     outliers = ~(deviation <= max(OUTLIER_PX, spread))
     left[outliers] = right[outliers] = widths[outliers] = np.nan
     run = _parallel_run(widths)
-    if run is None:
+    if run is None and not touching.any():
         raise SpecimenNotFound("the specimen has no parallel length long enough to measure")
-    start, stop = run
+    start, stop = run if run is not None else (0, len(widths))
     if np.any(touching[start:stop]):
         rows = np.nonzero(touching[start:stop])[0] + start
         x, y = centre + s_grid[rows[len(rows) // 2]] * along
