@@ -96,6 +96,23 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 
     _add_soak(benches)
     _add_optics(benches)
+    _add_detection(benches)
+
+
+def _add_detection(benches: argparse._SubParsersAction) -> None:
+    detection = benches.add_parser(
+        "detection",
+        help="specimen detection's axis, centre and width against simulated views' truth",
+    )
+    detection.add_argument("--quick", action="store_true", help="one seed, three poses")
+    _add_out(detection)
+    detection.set_defaults(handler=_detection)
+
+
+def _detection(args: argparse.Namespace) -> int:
+    from appliance.bench.detection import run_detection_benchmark
+
+    return run_detection_benchmark(args.out, quick=args.quick)
 
 
 def _add_optics(benches: argparse._SubParsersAction) -> None:

@@ -16,8 +16,8 @@ backdrop), a little rotated, off-centre, with the grips in view:
    axis located to a fraction of a pixel where the profile crosses halfway between the grey
    levels just outside and just inside the edge; a row whose width stands out from its
    neighbours' (a speckle fooled the edge search) is left out;
-3. the parallel length: the longest run of rows whose width stays within `PARALLEL_TOLERANCE`
-   of the narrowest width (a shoulder, a tab or a grip is wider); its ends are where the width
+3. the parallel length: the longest run of rows whose width exceeds the narrowest by no more
+   than `PARALLEL_TOLERANCE` (a shoulder, a tab or a grip is wider); its ends are where the width
    has departed from the parallel width by that tolerance, so they lie a little beyond the
    tangent points of the transition arcs (about 1.7 mm for an ISO 37 type 1 dumb-bell). Its
    centre along the axis is the mean of the midpoints between the two shoulders' crossings of
@@ -372,8 +372,8 @@ def _crossing(profile: np.ndarray, j: int, step: int, sign: float) -> float:
 
 
 def _parallel_run(widths: np.ndarray) -> tuple[int, int] | None:
-    """[start, stop) rows of the longest run whose width stays within the tolerance of the
-    narrowest; None when shorter than 20 rows."""
+    """[start, stop) rows of the longest run whose width (a running median) exceeds the
+    parallel width by no more than the tolerance; None when shorter than 20 rows."""
     valid = np.isfinite(widths)
     if valid.sum() < 20:
         return None
@@ -386,7 +386,7 @@ def _parallel_run(widths: np.ndarray) -> tuple[int, int] | None:
         tolerance = max(PARALLEL_TOLERANCE[0], PARALLEL_TOLERANCE[1] * reference)
         reference = float(np.median(finite[finite <= reference + tolerance]))
     tolerance = max(PARALLEL_TOLERANCE[0], PARALLEL_TOLERANCE[1] * reference)
-    within = ~(np.abs(smooth - reference) > tolerance)
+    within = ~(smooth - reference > tolerance)
     best: tuple[int, int] | None = None
     start = None
     for i, flag in enumerate(np.append(within, False)):
@@ -428,8 +428,11 @@ def _ends(
         low = _outward_crossing(s_grid, smooth, start, -1, level, reach, in_view)
         high = _outward_crossing(s_grid, smooth, stop - 1, 1, level, reach, in_view)
         if k == 0:
-            ends = (low, high)
-        if low is None or high is None:
+            ends = (
+                float(s_grid[start]) if low is not None and math.isnan(low) else low,
+                float(s_grid[stop - 1]) if high is not None and math.isnan(high) else high,
+            )
+        if low is None or high is None or math.isnan(low) or math.isnan(high):
             break
         midpoints.append(0.5 * (low + high))
     centre = float(np.mean(midpoints)) if midpoints else math.nan
@@ -446,8 +449,8 @@ def _outward_crossing(
     in_view: np.ndarray,
 ) -> float | None:
     """Position where `widths`, walked from `row` in direction `step` over the rows that have
-    one, first rises above `level`; None when it does not within `reach` rows or before the
-    image ends."""
+    one, first rises above `level`; None when the image ends first, NaN when it does not
+    within `reach` rows."""
     if not widths[row] <= level:
         return float(s_grid[row])
     for nxt in range(row + step, row + step * (reach + 1), step):
@@ -459,7 +462,7 @@ def _outward_crossing(
             fraction = (level - widths[row]) / (widths[nxt] - widths[row])
             return float(s_grid[row] + (s_grid[nxt] - s_grid[row]) * fraction)
         row = nxt
-    return None
+    return math.nan
 
 
 def _running_median(values: np.ndarray, window: int) -> np.ndarray:
