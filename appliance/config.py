@@ -151,9 +151,10 @@ class GaugeConfig:
     Marks are placed centred on the specimen: each axial mark is a line of `points_per_mark`
     points `mark_spacing_px` apart along the axis. `length_mm` left out takes the simulated
     specimen's gauge length; `transverse_width_mm` = 0 means no transverse gauge. The marks
-    are centred on (`centre_x_px`, `centre_y_px`) of the reference image (left out: the
-    simulated specimen's centre, or the image centre with a real camera) along a loading axis
-    `axis_deg` degrees from the image's +x towards +y (90 = vertical specimen).
+    are centred on (`centre_x_px`, `centre_y_px`) of the reference image along a loading axis
+    `axis_deg` degrees from the image's +x towards +y (90 = vertical specimen) when both are
+    given; left out, on the parallel length of the specimen detected in the reference image,
+    along its axis (`appliance.rig`).
     """
 
     length_mm: float | None = field(default=None, metadata=_range(0.1, 10000.0))
