@@ -66,7 +66,7 @@ def detect_command(args: argparse.Namespace) -> int:
     centre = detected
     if g.centre_x_px is not None and g.centre_y_px is not None:
         centre = GaugeCentre((g.centre_x_px, g.centre_y_px), g.axis_deg, CONFIGURED)
-    gauge = _gauge(config, centre, detection, image.shape)
+    gauge = gauge_marks(config, centre, detection, image.shape)
     document: dict[str, Any] = {"image": str(args.image), **detection.as_dict(), "gauge": gauge}
     if args.json:
         print_json(document, sys.stdout)
@@ -75,7 +75,7 @@ def detect_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def _gauge(
+def gauge_marks(
     config: Config, centre: GaugeCentre, detection: SpecimenDetection, shape: tuple[int, ...]
 ) -> dict[str, Any] | None:
     """The marks a test would place about `centre`; None without a gauge length or a scale.

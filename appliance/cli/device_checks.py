@@ -25,10 +25,12 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from appliance.cli.detection_overlay import save_detection_overlay
 from appliance.config import Config, register_map_of
 from appliance.measure.gauges import Calibration
 from appliance.measure.image_quality import view_quality
@@ -81,8 +83,11 @@ def check_camera(
     exposure_us: float | None = None,
     fetch_timeout_s: float = 2.0,
     calibration: Calibration | None = None,
+    save_path: Path | None = None,
 ) -> dict[str, Any]:
-    """Grab `frames` free-running frames and report what arrived.
+    """Grab `frames` free-running frames and report what arrived; with `save_path`, write the
+    last frame there with the specimen detection and the gauge drawn over it
+    (`appliance.cli.detection_overlay`).
 
     Args:
         camera: a constructed, not opened, camera (closed again on return).
@@ -93,6 +98,7 @@ def check_camera(
         exposure_us: exposure override, us.
         fetch_timeout_s: timeout of each fetch.
         calibration: the `[optics] calibration` to check against the images' size.
+        save_path: where to write the last frame with its overlays; None = nowhere.
 
     Returns:
         A JSON-ready report: `frames`, `width`, `height`, `pixel_format`, `fps` (host arrival),
@@ -201,6 +207,9 @@ def check_camera(
     problems = list(_delivery_problems(report)) + list(view.problems)
     report["fit"] = not problems
     report["problems"] = problems
+    if save_path is not None:
+        save_detection_overlay(save_path, last_image, in_force.pixel_format.max_value, config)
+        report["saved"] = str(save_path)
     return report
 
 
