@@ -20,7 +20,7 @@ WIDTH_IN = 8.0
 HEIGHT_IN = 4.0
 GAUGE_MARGIN_PX = 120
 GAUGE_MARGIN_FRACTION = 0.3
-MAX_IMAGE_PX = 700
+GAUGE_FIGURE_IN = 6.0
 
 
 def _pyplot():
@@ -107,6 +107,8 @@ def time_series_svg(series: TestSeries) -> str:
 def validity_svg(series: TestSeries) -> str:
     """The data-valid flag, the points lost per frame and the frames dropped so far."""
     plt = _pyplot()
+    from matplotlib.ticker import MaxNLocator
+
     figure, (valid_axes, lost_axes) = plt.subplots(2, 1, figsize=(WIDTH_IN, HEIGHT_IN), sharex=True)
     valid_axes.step(series.time_s, series.valid.astype(int), where="post", color="#1b7837")
     valid_axes.set_ylim(-0.1, 1.1)
@@ -118,6 +120,8 @@ def validity_svg(series: TestSeries) -> str:
     )
     lost_axes.set_xlabel("time since the reference frame (s)")
     lost_axes.set_ylabel("count")
+    lost_axes.yaxis.set_major_locator(MaxNLocator(integer=True))
+    lost_axes.set_ylim(bottom=-0.5, top=max(1.5, lost_axes.get_ylim()[1]))
     lost_axes.legend(fontsize=8, loc="upper left")
     for axes in (valid_axes, lost_axes):
         axes.grid(alpha=0.3)
@@ -151,19 +155,24 @@ def gauge_png_uri(
     a `data:image/png;base64,...` URI."""
     plt = _pyplot()
     grey = image if image.ndim == 2 else image.mean(axis=2)
-    span = float(np.ptp(points, axis=0).max())
-    margin = int(max(GAUGE_MARGIN_PX, GAUGE_MARGIN_FRACTION * span))
-    low_x, low_y = np.floor(points.min(axis=0)).astype(int) - margin
-    high_x, high_y = np.ceil(points.max(axis=0)).astype(int) + margin
+    centre = points.mean(axis=0)
+    half = 0.5 * np.ptp(points, axis=0) + max(
+        GAUGE_MARGIN_PX, GAUGE_MARGIN_FRACTION * np.ptp(points)
+    )
+    half = np.maximum(half, 0.5 * half[::-1])
+    low_x, low_y = np.floor(centre - half).astype(int)
+    high_x, high_y = np.ceil(centre + half).astype(int)
     low_x, low_y = max(low_x, 0), max(low_y, 0)
     high_x, high_y = min(high_x, grey.shape[1]), min(high_y, grey.shape[0])
     crop = grey[low_y:high_y, low_x:high_x].astype(np.float64)
     dark, bright = np.percentile(crop, [0.5, 99.5]) if crop.size else (0.0, 1.0)
     height, width = crop.shape
-    scale = min(1.0, MAX_IMAGE_PX / max(height, width, 1))
-    figure, axes = plt.subplots(
-        figsize=(max(width * scale, 200) / 100, max(height * scale, 200) / 100)
+    aspect = width / max(height, 1)
+    size_in = (
+        GAUGE_FIGURE_IN * min(aspect, 1.0) + 1.0,
+        GAUGE_FIGURE_IN * min(1.0 / aspect, 1.0) + 0.8,
     )
+    figure, axes = plt.subplots(figsize=size_in)
     axes.imshow(
         crop,
         cmap="gray",
@@ -177,15 +186,7 @@ def gauge_png_uri(
     ]
     (x0, y0), (x1, y1) = centres
     axes.plot([x0, x1], [y0, y1], color="#e41a1c", lw=1.2)
-    axes.annotate(
-        f"L0 = {gauge_length_mm:.4g} mm",
-        ((x0 + x1) / 2, (y0 + y1) / 2),
-        textcoords="offset points",
-        xytext=(8, 0),
-        color="#e41a1c",
-        fontsize=9,
-        bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"},
-    )
+    axes.set_title(f"gauge length L0 = {gauge_length_mm:.4g} mm", fontsize=10)
     if layout.transverse is not None:
         (tx0, ty0), (tx1, ty1) = (
             points[list(mark)].mean(axis=0)
