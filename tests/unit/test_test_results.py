@@ -208,3 +208,21 @@ def test_a_page_without_results_says_why():
         report_page.ReportFigures(),
     )
     assert "No results: [specimen] material is not configured" in page
+
+
+@pytest.mark.parametrize(
+    ("summary", "page"),
+    [
+        ("out/summary.json", "out/report.html"),
+        ("state/test-1.summary.json", "state/test-1.report.html"),
+        ("out/first.json", "out/first.report.html"),
+    ],
+)
+def test_the_report_page_goes_beside_the_summary(summary, page):
+    from pathlib import Path
+
+    from appliance.runner import OutputFiles
+
+    assert OutputFiles(summary=Path(summary)).report_page == Path(page)
+    assert OutputFiles(summary=Path(summary), report=Path("x.html")).report_page == Path("x.html")
+    assert OutputFiles().report_page is None
