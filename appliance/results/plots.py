@@ -21,6 +21,7 @@ HEIGHT_IN = 4.0
 GAUGE_MARGIN_PX = 120
 GAUGE_MARGIN_FRACTION = 0.3
 GAUGE_FIGURE_IN = 6.0
+GAUGE_DPI = 80
 
 
 def _pyplot():
@@ -197,6 +198,6 @@ def gauge_png_uri(
     axes.set_ylabel("y (px)")
     buffer = io.BytesIO()
     figure.tight_layout()
-    figure.savefig(buffer, format="png", dpi=100)
+    figure.savefig(buffer, format="png", dpi=GAUGE_DPI)
     plt.close(figure)
     return "data:image/png;base64," + base64.b64encode(buffer.getvalue()).decode("ascii")
