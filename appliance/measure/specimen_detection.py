@@ -55,6 +55,9 @@ EDGE_SMOOTHING_PX = 15
 """Rows averaged along the axis before the edges are located, px."""
 PARALLEL_TOLERANCE = (0.8, 0.01)
 """Width above the parallel width that ends the parallel length: the larger of 0.8 px and 1 %."""
+BUMP_TOLERANCES = 3.0
+"""A stretch wider than the parallel width by less than this many tolerances, narrow again on
+both sides, is a speckle's doing, not a shoulder (which widens on to the tab)."""
 OUTLIER_WINDOW_PX = 61
 OUTLIER_PX = 1.0
 """A row whose width differs from the median of the `OUTLIER_WINDOW_PX` rows about it by more
@@ -373,7 +376,8 @@ def _crossing(profile: np.ndarray, j: int, step: int, sign: float) -> float:
 
 def _parallel_run(widths: np.ndarray) -> tuple[int, int] | None:
     """[start, stop) rows of the longest run whose width (a running median) exceeds the
-    parallel width by no more than the tolerance; None when shorter than 20 rows."""
+    parallel width by no more than the tolerance, bumps of less than `BUMP_TOLERANCES` with
+    narrow rows on both sides included; None when shorter than 20 rows."""
     valid = np.isfinite(widths)
     if valid.sum() < 20:
         return None
@@ -386,7 +390,16 @@ def _parallel_run(widths: np.ndarray) -> tuple[int, int] | None:
         tolerance = max(PARALLEL_TOLERANCE[0], PARALLEL_TOLERANCE[1] * reference)
         reference = float(np.median(finite[finite <= reference + tolerance]))
     tolerance = max(PARALLEL_TOLERANCE[0], PARALLEL_TOLERANCE[1] * reference)
-    within = ~(smooth - reference > tolerance)
+    excess = smooth - reference
+    within = ~(excess > tolerance)
+    labels, count = ndimage.label(~within)
+    for number in range(1, count + 1):
+        rows = np.nonzero(labels == number)[0]
+        first, last = rows[0], rows[-1]
+        bounded = first > 0 and last < len(smooth) - 1
+        bounded = bounded and np.isfinite(smooth[first - 1]) and np.isfinite(smooth[last + 1])
+        if bounded and np.nanmax(excess[rows]) < BUMP_TOLERANCES * tolerance:
+            within[rows] = True
     best: tuple[int, int] | None = None
     start = None
     for i, flag in enumerate(np.append(within, False)):
@@ -435,8 +448,14 @@ def _ends(
         if low is None or high is None or math.isnan(low) or math.isnan(high):
             break
         midpoints.append(0.5 * (low + high))
-    centre = float(np.mean(midpoints)) if midpoints else math.nan
-    return ends[0], centre, ends[1]
+    low, high = ends
+    if midpoints:
+        centre = float(np.mean(midpoints))
+    elif low is not None and high is not None:
+        centre = 0.5 * (low + high)
+    else:
+        centre = math.nan
+    return low, centre, high
 
 
 def _outward_crossing(
