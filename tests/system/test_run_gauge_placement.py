@@ -35,7 +35,8 @@ def test_the_summary_and_the_recording_say_how_the_gauge_was_placed(tmp_path):
     assert facts["gauge_length_achieved_mm"] == pytest.approx(25.0, rel=1e-9)
     truth = SimWorld.from_config(config, PRESETS["rubber"].optics).specimen_centre_px
     assert np.hypot(*np.subtract(facts["gauge_centre_px"], truth)) < 1.0
-    assert facts["specimen_width_px"] == pytest.approx(6.2 / 0.15208, abs=0.3)
+    width_px = 6.2 / PRESETS["rubber"].optics.scale_mm_per_px
+    assert facts["specimen_width_px"] == pytest.approx(width_px, abs=0.2)
     reader = RecordingReader(recording)
     try:
         reader.read_all()
