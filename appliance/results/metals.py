@@ -44,7 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from appliance.results.result import Result, TestResults
-from appliance.results.series import TestSeries
+from appliance.results.series import TestSeries, why_no_stress
 
 RM_DROP_FRACTION = 0.005
 YIELD_DROP_FRACTION = 0.01
@@ -89,7 +89,7 @@ def metal_results(
         cross_section_mm2: S0, mm^2; None: every result is not determined, naming `[specimen]`.
         broke: the test ended at the specimen's fracture (A needs it; Rm is then shown).
     """
-    reason = _why_no_stress(series, cross_section_mm2)
+    reason = why_no_stress(series, cross_section_mm2)
     if reason is not None:
         return TestResults(STANDARD, cross_section_mm2, [_missing(s, reason) for s in _ORDER], MAIN)
     assert cross_section_mm2 is not None
@@ -103,19 +103,6 @@ def metal_results(
     found["Ag"] = curve.plastic_extension_at_maximum(found["Rm"], found["E"])
     found["A"] = curve.elongation_after_fracture(found["E"], broke)
     return TestResults(STANDARD, cross_section_mm2, [found[s] for s in _ORDER], MAIN)
-
-
-def _why_no_stress(series: TestSeries, cross_section_mm2: float | None) -> str | None:
-    if cross_section_mm2 is None:
-        return (
-            "no cross-section: [specimen] width_mm and thickness_mm (or diameter_mm) "
-            "are not configured"
-        )
-    if not np.any(series.valid):
-        return "no valid sample"
-    if not series.has_force:
-        return "no force readings from the machine"
-    return None
 
 
 class _Curve:

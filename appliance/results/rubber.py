@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from appliance.results.result import Result, TestResults
-from appliance.results.series import TestSeries
+from appliance.results.series import TestSeries, why_no_stress
 
 STANDARD = "ISO 37"
 STRESS_AT_ELONGATION_PERCENT = (100, 200, 300)
@@ -44,7 +44,7 @@ def rubber_results(
     usable = series.valid & np.isfinite(series.strain)
     index, strain = series.index[usable], series.strain[usable]
     stress = series.force_n[usable] / (cross_section_mm2 or np.nan)
-    reason = _why_no_stress(series, cross_section_mm2)
+    reason = why_no_stress(series, cross_section_mm2)
     results = [
         _stress_at(index, strain, stress, percent, reason)
         for percent in STRESS_AT_ELONGATION_PERCENT
@@ -52,17 +52,6 @@ def rubber_results(
     results.insert(0, _elongation_at_break(index, strain, broke))
     results.insert(0, _tensile_strength(index, stress, broke, reason))
     return TestResults(STANDARD, cross_section_mm2, results, MAIN)
-
-
-def _why_no_stress(series: TestSeries, cross_section_mm2: float | None) -> str | None:
-    if cross_section_mm2 is None:
-        return (
-            "no cross-section: [specimen] width_mm and thickness_mm (or diameter_mm) "
-            "are not configured"
-        )
-    if not series.has_force:
-        return "no force readings from the machine"
-    return None
 
 
 def _tensile_strength(

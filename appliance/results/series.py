@@ -133,3 +133,17 @@ def cross_section_mm2(specimen: SpecimenConfig) -> float | None:
     if specimen.width_mm is not None and specimen.thickness_mm is not None:
         return specimen.width_mm * specimen.thickness_mm
     return None
+
+
+def why_no_stress(series: TestSeries, cross_section_mm2: float | None) -> str | None:
+    """Why the series gives no stress (no S0, no valid sample, no force), or None."""
+    if cross_section_mm2 is None:
+        return (
+            "no cross-section: [specimen] width_mm and thickness_mm (or diameter_mm) "
+            "are not configured"
+        )
+    if not np.any(series.valid):
+        return "no valid sample"
+    if not series.has_force:
+        return "no force readings from the machine"
+    return None
