@@ -10,6 +10,12 @@ size) each point of the JSON also gets its position on the specimen plane, `X_mm
 intersected with the calibrated plane), and its displacement there since the reference,
 `dX_mm`, `dY_mm`; all four null where the point was not found. The document then names the
 calibration (`calibration`: file, checksum, scale).
+
+The work runs on `--threads` workers (default: every core this process may use, up to numba's
+thread count): the ZNCC search of all points in batches (`appliance.dic.batched_search`), IC-GN
+on the parallel kernel, and the next image read while the current one is measured. The numbers
+do not depend on the thread count. The JSON says the throughput (`throughput`: points and
+images per second, from reading the reference to the last image measured, and the threads).
 """
 
 from __future__ import annotations
@@ -17,22 +23,29 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from appliance.cli import arguments
 from appliance.cli.image_files import read_grey
 from appliance.cli.points_file import read_points
+from appliance.dic import integer_search
+from appliance.dic.batched_search import ZNCCSearch
+from appliance.dic.blur import motion_blur
 from appliance.dic.correlation import (
     DEFAULT_PREFILTER_SIGMA,
     SEARCH_METHODS,
-    Correlator,
     PointStatus,
     subsets_outside,
 )
-from appliance.dic.icgn import ICGNResult
+from appliance.dic.icgn import ICGN, ICGNResult
+from appliance.dic.lpq import LPQParams
 from appliance.errors import InputError
 from appliance.measure.tracking import TrackerSettings
 from appliance.optics.calibration_file import CameraCalibration, load_calibration
@@ -96,14 +109,27 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         help="camera calibration (extensometer calibrate): add object-plane positions and "
         "displacements in mm (X_mm, Y_mm, dX_mm, dY_mm) to the JSON",
     )
+    track.add_argument(
+        "--threads",
+        type=arguments.within(int, 1, numba.config.NUMBA_NUM_THREADS),
+        default=default_threads(),
+        help=f"worker threads ({default_threads()} here: the cores this process may use)",
+    )
     output = track.add_mutually_exclusive_group()
     output.add_argument("--json", action="store_true", help="print JSON on stdout")
     output.add_argument("--out", metavar="FILE", help="write JSON to FILE")
     track.set_defaults(handler=track_images)
 
 
+def default_threads() -> int:
+    """Worker threads of `track` by default: the cores this process may use, at most numba's
+    thread count."""
+    return max(1, min(len(os.sched_getaffinity(0)), numba.config.NUMBA_NUM_THREADS))
+
+
 def track_images(args: argparse.Namespace) -> int:
     """Run `track`; returns the exit status."""
+    started = time.perf_counter()
     points = read_points(args.points)
     reference = read_grey(args.reference)
     height, width = reference.shape
@@ -117,39 +143,122 @@ def track_images(args: argparse.Namespace) -> int:
             f"({x:g}, {y:g}) reaches outside the {width}x{height} reference image "
             f"{args.reference}"
         )
-    try:
-        correlator = Correlator(
-            subset=args.subset,
-            search=args.search,
-            search_radius=args.search_radius,
-            prefilter_sigma=args.prefilter_sigma,
-            reference_blur=(args.blur_px, args.blur_angle_deg) if args.blur_px > 0 else None,
-            lpq_window=args.lpq_window,
+    if args.lpq_window is not None and args.lpq_window > args.subset:
+        raise InputError(
+            f"track: --lpq-window: lpq_window {args.lpq_window} exceeds subset {args.subset}"
         )
-    except ValueError as exc:
-        raise InputError(f"track: --lpq-window: {exc}") from None
-    correlator.prepare(reference.astype(np.float64), points.xy)
+    warm_up_s = _Pipeline.warm_up(args, reference)
+    pipeline = _Pipeline(args, reference, points.xy)
     plane = _Plane(calibration.projection(), points.xy) if calibration is not None else None
     guess = np.zeros((len(points.xy), 2)) if points.guess is None else points.guess.copy()
     measured: list[dict] = []
     try:
-        for path in args.images:
-            image = read_grey(path)
+        for path, image in _images_in_order(args.images, args.threads > 1):
             if image.shape != reference.shape:
                 raise InputError(
                     f"{path}: size {image.shape[1]}x{image.shape[0]} differs from the "
                     f"reference {args.reference} ({width}x{height})"
                 )
-            result = correlator.measure(image.astype(np.float64), guess).refinement
+            result = pipeline.measure(image, guess)
             converged = result.status == PointStatus.CONVERGED
             guess[converged, 0] = result.u[converged]
             guess[converged, 1] = result.v[converged]
             measured.append(_image_record(path, points.xy, result, plane))
     except InputError as error:
-        _emit(args, measured, calibration)
+        _emit(args, measured, calibration, None)
         raise error
-    _emit(args, measured, calibration)
+    seconds = time.perf_counter() - started - warm_up_s
+    _emit(args, measured, calibration, _throughput(len(points.xy), len(measured), seconds, args))
     return 0
+
+
+class _Pipeline:
+    """Search, then IC-GN, of the points of interest against one reference: the steps of
+    `appliance.dic.correlation.Correlator.measure`, with the ZNCC search of all points in
+    batches and the work on `--threads` workers."""
+
+    def __init__(self, args: argparse.Namespace, reference: np.ndarray, xy: np.ndarray) -> None:
+        self.method = args.search
+        self.radius = args.search_radius
+        self.subset = args.subset
+        self.points = xy
+        self.lpq = LPQParams() if args.lpq_window is None else LPQParams(window=args.lpq_window)
+        self.reference = reference.astype(np.float64)
+        if args.blur_px > 0:
+            self.reference = motion_blur(self.reference, args.blur_px, args.blur_angle_deg)
+        self.icgn = ICGN(
+            subset=args.subset, prefilter_sigma=args.prefilter_sigma, threads=args.threads
+        )
+        self.icgn.prepare(self.reference, xy)
+        self.zncc: ZNCCSearch | None = None
+        if self.method == "zncc":
+            self.zncc = ZNCCSearch(
+                subset=args.subset, radius=args.search_radius, threads=args.threads
+            )
+            self.zncc.prepare(self.reference, xy)
+
+    @classmethod
+    def warm_up(cls, args: argparse.Namespace, reference: np.ndarray) -> float:
+        """Load (or compile) the kernels the pipeline runs, by measuring a few points of a
+        corner of the reference against itself; returns the seconds it took. The throughput
+        leaves them out: they are the process's start, paid once whatever the images."""
+        started = time.perf_counter()
+        side = min(*reference.shape, 2 * args.subset + 2 * args.search_radius, 256)
+        corner = np.ascontiguousarray(reference[:side, :side])
+        centre = (side - 1) / 2.0
+        step = max(1.0, min(4.0, (side - args.subset) / 4.0))
+        xy = centre + step * np.array([(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1)], float)
+        cls(args, corner, xy).measure(corner, np.zeros((len(xy), 2)))
+        return time.perf_counter() - started
+
+    def measure(self, image: np.ndarray, guess: np.ndarray) -> ICGNResult:
+        """IC-GN result of every point in `image`, the search window centred on `guess`."""
+        if self.method == "none":
+            return self.icgn.compute(image, guess)
+        if self.zncc is not None:
+            found = self.zncc.search(image, guess)
+        else:
+            found = integer_search.lpq_search(
+                self.reference,
+                image,
+                self.points,
+                subset=self.subset,
+                radius=self.radius,
+                guess=guess,
+                params=self.lpq,
+            )
+        seeded = np.zeros((len(self.points), 6))
+        seeded[:, :2] = guess
+        use = found.valid
+        seeded[use, :2] = found.displacement[use]
+        seeded[use, 2:] = found.gradient[use]
+        return self.icgn.compute(image, seeded)
+
+
+def _images_in_order(paths: list[str], ahead: bool):
+    """(path, image) of every path in order; with `ahead`, the next image is read on another
+    thread while the caller works on the current one. A bad file raises its `InputError` when
+    its turn comes."""
+    if not ahead:
+        for path in paths:
+            yield path, read_grey(path)
+        return
+    with ThreadPoolExecutor(max_workers=1) as reader:
+        pending: Future = reader.submit(read_grey, paths[0])
+        for k, path in enumerate(paths):
+            image = pending.result()
+            if k + 1 < len(paths):
+                pending = reader.submit(read_grey, paths[k + 1])
+            yield path, image
+
+
+def _throughput(points: int, images: int, seconds: float, args: argparse.Namespace) -> dict:
+    return {
+        "points_per_s": points * images / seconds,
+        "images_per_s": images / seconds,
+        "seconds": seconds,
+        "threads": args.threads,
+    }
 
 
 def _calibration(path: str | None, size: tuple[int, int]) -> CameraCalibration | None:
@@ -231,7 +340,10 @@ def _image_record(
 
 
 def _emit(
-    args: argparse.Namespace, measured: list[dict], calibration: CameraCalibration | None
+    args: argparse.Namespace,
+    measured: list[dict],
+    calibration: CameraCalibration | None,
+    throughput: dict | None,
 ) -> None:
     document: dict = {"images": measured}
     if calibration is not None:
@@ -240,14 +352,15 @@ def _emit(
             "checksum": calibration.checksum,
             "scale_mm_per_px": calibration.scale_mm_per_px,
         }
+    if throughput is not None:
+        document["throughput"] = throughput
     if args.out:
         try:
-            Path(args.out).write_text(json.dumps(document, indent=1) + "\n", encoding="utf-8")
+            Path(args.out).write_text(_json_text(document), encoding="utf-8")
         except OSError as exc:
             raise InputError(f"{args.out}: cannot write output ({exc.strerror})") from None
     elif args.json:
-        json.dump(document, sys.stdout, indent=1)
-        sys.stdout.write("\n")
+        sys.stdout.write(_json_text(document))
     else:
         for image in measured:
             print(image["path"])
@@ -260,3 +373,16 @@ def _emit(
                     f"{p['x']:9.2f} {p['y']:9.2f} {u:>10} {v:>10} {zncc:>8} "
                     f"{p['iterations']:3d}  {p['status']}"
                 )
+
+
+def _json_text(document: dict) -> str:
+    """The document as JSON: a line per image (json's compiled encoder writes a line; its
+    indenting one is pure Python, the slowest part of a large `track`), a line per other key."""
+    parts = []
+    for key, value in document.items():
+        if key == "images":
+            images = ",\n  ".join(json.dumps(image) for image in value)
+            parts.append(f'"images": [\n  {images}\n ]' if value else '"images": []')
+        else:
+            parts.append(f"{json.dumps(key)}: {json.dumps(value)}")
+    return "{\n " + ",\n ".join(parts) + "\n}\n"
