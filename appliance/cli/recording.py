@@ -1,10 +1,10 @@
 """`extensometer replay` and `extensometer info`: recordings measured again, and summarised.
 
 `replay` measures a recorded test again from its recorded pixels
-(`appliance.recording.replay.replay_recording`), with the test's results in its summary and
-its report page (`appliance.results`) written beside the recording as `NAME.replay.html` (or
-to `--report FILE.html`; a page that cannot be written is said in one line, exit status 1),
-and exits 1 when the file is damaged (one line
+(`appliance.recording.replay.replay_recording`), with the test's results in its summary
+(`appliance.results`); with `--out DIR` it writes `report.html` and `summary.json` there (a
+directory that cannot be made refuses the replay, exit status 2; a file that cannot be written
+is said in one line, exit status 1). It exits 1 when the file is damaged (one line
 on stderr: the damage, how many of the recorded samples were measured, and where the reference
 frame was read when not from its attachment) or, without an override, when any sample differs
 from the recording; `info` reads a recording front to back with every CRC checked
@@ -17,10 +17,16 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from appliance.cli import arguments
 from appliance.cli.printing import print_json, print_summary
 from appliance.cli.run import viewer_of
+from appliance.errors import InputError
+
+if TYPE_CHECKING:
+    from appliance.results.report_output import TestReport
+    from appliance.run.summary import RunOutcome
 
 
 def add_parsers(commands: argparse._SubParsersAction) -> None:
@@ -41,10 +47,7 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
         "--config", type=Path, metavar="OVERRIDE", help="TOML tables replacing recorded keys"
     )
     replay.add_argument(
-        "--report",
-        type=Path,
-        metavar="FILE.html",
-        help="the report page (default: beside the recording, NAME.replay.html)",
+        "--out", type=Path, metavar="DIR", help="output directory for report.html, summary.json"
     )
     arguments.add_rerun_options(replay)
     replay.add_argument("--json", action="store_true", help="print the summary as JSON, quietly")
@@ -68,6 +71,11 @@ def replay_test(args: argparse.Namespace) -> int:
     from appliance.recording.replay import is_exact, replay_recording
     from appliance.results.report_output import TestReport
 
+    if args.out is not None:
+        try:
+            args.out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise InputError(f"{args.out}: cannot create ({exc.strerror})") from None
     progress = None if args.json or not sys.stderr.isatty() else sys.stderr
     viewer = viewer_of(arguments.configuration(None, args))
     viewers = [viewer] if viewer is not None else []
@@ -81,14 +89,13 @@ def replay_test(args: argparse.Namespace) -> int:
     finally:
         for output in viewers:
             output.close()
-    page = args.report or args.recording.with_name(f"{args.recording.stem}.replay.html")
-    report.write(page, outcome)
+    unwritten = _write_outputs(args.out, report, outcome) if args.out is not None else None
     if args.json:
         print(outcome.to_json())
     else:
         print_summary(outcome)
-    if outcome.extra["report"] != str(page):
-        print(f"extensometer: {outcome.extra['report']}", file=sys.stderr)
+    if unwritten is not None:
+        print(f"extensometer: {unwritten}", file=sys.stderr)
         return 1
     if outcome.extra.get("damage"):
         print(f"extensometer: {args.recording}: {outcome.summary.reason}", file=sys.stderr)
@@ -101,6 +108,22 @@ def replay_test(args: argparse.Namespace) -> int:
         )
         return 1
     return 0
+
+
+def _write_outputs(out: Path, report: TestReport, outcome: RunOutcome) -> str | None:
+    """Write `report.html` and `summary.json` into `out`; the first that could not be written,
+    as one line, or None."""
+    from appliance.results.report_output import REPORT_NAME
+
+    page = out / REPORT_NAME
+    report.write(page, outcome)
+    failures = [] if outcome.extra["report"] == str(page) else [outcome.extra["report"]]
+    summary = out / "summary.json"
+    try:
+        summary.write_text(outcome.to_json() + "\n")
+    except OSError as exc:
+        failures.append(f"{summary}: cannot write ({exc.strerror})")
+    return failures[0] if failures else None
 
 
 def show_info(args: argparse.Namespace) -> int:

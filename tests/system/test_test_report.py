@@ -92,26 +92,49 @@ def test_run_writes_the_report_beside_the_summary(metal_test):
     assert re.search(rf"^report +{re.escape(str(out / 'report.html'))}$", printed, re.M)
 
 
-def test_replay_writes_its_report_beside_the_recording(metal_test):
+def test_replay_writes_its_report_and_summary_into_its_output_directory(metal_test, tmp_path):
     out, _ = metal_test
-    done = extensometer("replay", str(out / "t.mcap"), "--json")
+    replayed_out = tmp_path / "replayed"
+    done = extensometer("replay", str(out / "t.mcap"), "--json", "--out", str(replayed_out))
     assert done.returncode == 0, done.stderr
     replayed = json.loads(done.stdout)
+    assert json.loads((replayed_out / "summary.json").read_text()) == replayed
     ran = json.loads((out / "summary.json").read_text())
     assert replayed["results"] == ran["results"]
-    page_path = out / "t.replay.html"
-    assert replayed["report"] == str(page_path)
-    page = page_path.read_text()
+    assert replayed["report"] == str(replayed_out / "report.html")
+    page = (replayed_out / "report.html").read_text()
     assert_self_contained(page)
     assert results_table(page) == results_table((out / "report.html").read_text())
+    assert sorted(p.name for p in out.iterdir()) == [
+        "metal.toml",
+        "report.html",
+        "strain.csv",
+        "summary.json",
+        "t.mcap",
+    ]
 
 
 def test_a_report_that_cannot_be_written_is_said_in_one_line(metal_test, tmp_path):
     out, _ = metal_test
-    page = tmp_path / "absent" / "page.html"
-    done = extensometer("replay", str(out / "t.mcap"), "--json", "--report", str(page))
+    (tmp_path / "report.html").mkdir()
+    done = extensometer("replay", str(out / "t.mcap"), "--json", "--out", str(tmp_path))
     assert done.returncode == 1
-    assert done.stderr == f"extensometer: {page}: cannot write (No such file or directory)\n"
+    assert (
+        done.stderr == f"extensometer: {tmp_path / 'report.html'}: cannot write (Is a directory)\n"
+    )
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["report"].endswith("cannot write (Is a directory)")
+
+
+def test_a_replay_output_directory_that_cannot_be_made_refuses_the_replay(metal_test, tmp_path):
+    out, _ = metal_test
+    (tmp_path / "file").write_text("")
+    done = extensometer("replay", str(out / "t.mcap"), "--out", str(tmp_path / "file" / "out"))
+    assert done.returncode == 2
+    assert (
+        done.stderr
+        == f"extensometer: error: {tmp_path / 'file' / 'out'}: cannot create (Not a directory)\n"
+    )
 
 
 def test_the_configured_cross_section_is_used_and_early_ends_are_not_determined(tmp_path):
