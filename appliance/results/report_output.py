@@ -8,7 +8,8 @@ object; `write` draws the figures and writes the page (`report_page`).
 
 The material and the original cross-section S0 are run facts (`specimen_material`,
 `cross_section_mm2`: the `[specimen]` table's, or a simulated test's preset), so a replay
-reports with what the test was run with. The truth of a simulated test comes in only as the
+reports with what the test was run with (a recording older than these facts: the simulated
+`material`, and no S0). The truth of a simulated test comes in only as the
 `truth` callable of the composition, and only draws the error figure: no result reads it.
 """
 
@@ -51,7 +52,6 @@ class TestReport:
         self._recorder = SeriesRecorder(truth)
         self._facts: RunFacts | None = None
         self._reference: np.ndarray | None = None
-        self._loop: LoopResult | None = None
         self.series: TestSeries | None = None
         self.results: TestResults | None = None
         self.no_results_reason: str | None = "the test did not begin"
@@ -67,12 +67,11 @@ class TestReport:
 
     def end(self, result: LoopResult) -> None:
         """Compute the results of the test as it ended."""
-        self._loop = result
         self.series = self._recorder.series()
         if self._facts is None:
             return
         facts = self._facts.facts
-        material = facts.get("specimen_material")
+        material = facts.get("specimen_material") or facts.get("material")
         area = facts.get("cross_section_mm2")
         compute = STANDARDS.get(str(material))
         if compute is None:
