@@ -13,7 +13,8 @@ calibration (`calibration`: file, checksum, scale).
 
 The work runs on `--threads` workers (default: every core this process may use, up to numba's
 thread count): the ZNCC search of all points in batches (`appliance.dic.batched_search`), IC-GN
-on the parallel kernel, and the next image read while the current one is measured. The numbers
+on the parallel kernel, and the next image read and prepared (its spline coefficients) while
+the current one is measured. The numbers
 do not depend on the thread count. The JSON says the throughput (`throughput`: points and
 images per second, from reading the reference to the last image measured, and the threads).
 """
@@ -26,6 +27,7 @@ import math
 import os
 import sys
 import time
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
@@ -44,7 +46,7 @@ from appliance.dic.correlation import (
     PointStatus,
     subsets_outside,
 )
-from appliance.dic.icgn import ICGN, ICGNResult
+from appliance.dic.icgn import ICGN, ICGNResult, PreparedTarget
 from appliance.dic.lpq import LPQParams
 from appliance.errors import InputError
 from appliance.measure.tracking import TrackerSettings
@@ -153,13 +155,15 @@ def track_images(args: argparse.Namespace) -> int:
     guess = np.zeros((len(points.xy), 2)) if points.guess is None else points.guess.copy()
     measured: list[dict] = []
     try:
-        for path, image in _images_in_order(args.images, args.threads > 1):
+        for path, image, prepared in _images_in_order(
+            args.images, pipeline.icgn.prepare_target, args.threads > 1
+        ):
             if image.shape != reference.shape:
                 raise InputError(
                     f"{path}: size {image.shape[1]}x{image.shape[0]} differs from the "
                     f"reference {args.reference} ({width}x{height})"
                 )
-            result = pipeline.measure(image, guess)
+            result = pipeline.measure(image, guess, prepared)
             converged = result.status == PointStatus.CONVERGED
             guess[converged, 0] = result.u[converged]
             guess[converged, 1] = result.v[converged]
@@ -208,13 +212,16 @@ class _Pipeline:
         centre = (side - 1) / 2.0
         step = max(1.0, min(4.0, (side - args.subset) / 4.0))
         xy = centre + step * np.array([(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1)], float)
-        cls(args, corner, xy).measure(corner, np.zeros((len(xy), 2)))
+        pipeline = cls(args, corner, xy)
+        prepared = pipeline.icgn.prepare_target(corner)
+        pipeline.measure(corner, np.zeros((len(xy), 2)), prepared)
         return time.perf_counter() - started
 
-    def measure(self, image: np.ndarray, guess: np.ndarray) -> ICGNResult:
-        """IC-GN result of every point in `image`, the search window centred on `guess`."""
+    def measure(self, image: np.ndarray, guess: np.ndarray, prepared: PreparedTarget) -> ICGNResult:
+        """IC-GN result of every point in `image` (`prepared` by `self.icgn.prepare_target`),
+        the search window centred on `guess`."""
         if self.method == "none":
-            return self.icgn.compute(image, guess)
+            return self.icgn.compute(prepared, guess)
         if self.zncc is not None:
             found = self.zncc.search(image, guess)
         else:
@@ -232,24 +239,31 @@ class _Pipeline:
         use = found.valid
         seeded[use, :2] = found.displacement[use]
         seeded[use, 2:] = found.gradient[use]
-        return self.icgn.compute(image, seeded)
+        return self.icgn.compute(prepared, seeded)
 
 
-def _images_in_order(paths: list[str], ahead: bool):
-    """(path, image) of every path in order; with `ahead`, the next image is read on another
-    thread while the caller works on the current one. A bad file raises its `InputError` when
-    its turn comes."""
+def _images_in_order(
+    paths: list[str], prepare: Callable[[np.ndarray], PreparedTarget], ahead: bool
+) -> Iterator[tuple[str, np.ndarray, PreparedTarget]]:
+    """(path, image, prepared image) of every path in order; with `ahead`, the next image is
+    read and prepared on another thread while the caller works on the current one (both
+    release the GIL). A bad file raises its `InputError` when its turn comes."""
+
+    def load(path: str) -> tuple[np.ndarray, PreparedTarget]:
+        image = read_grey(path)
+        return image, prepare(image)
+
     if not ahead:
         for path in paths:
-            yield path, read_grey(path)
+            yield path, *load(path)
         return
     with ThreadPoolExecutor(max_workers=1) as reader:
-        pending: Future = reader.submit(read_grey, paths[0])
+        pending: Future = reader.submit(load, paths[0])
         for k, path in enumerate(paths):
-            image = pending.result()
+            image, prepared = pending.result()
             if k + 1 < len(paths):
-                pending = reader.submit(read_grey, paths[k + 1])
-            yield path, image
+                pending = reader.submit(load, paths[k + 1])
+            yield path, image, prepared
 
 
 def _throughput(points: int, images: int, seconds: float, args: argparse.Namespace) -> dict:

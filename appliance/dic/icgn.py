@@ -41,16 +41,22 @@ block; otherwise on the calling thread alone, since for a handful of points (a t
 mark) starting the thread pool costs more than it saves. The target subset is sampled a row at
 a time (`appliance.dic.bspline.interpolate_line`), which vectorises the interpolation without
 changing a single operation of it.
+
+The kernels release the GIL, and so does `prepare_target`'s coefficient computation: a caller
+may prepare the next target on another thread while this one is refined (`extensometer track`
+does).
 """
 
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass
 
 import numba
 import numpy as np
 
+from appliance.dic import bspline
 from appliance.dic.bspline import (
     interpolate_line,
     interpolate_row_with_gradient,
@@ -244,7 +250,7 @@ def _prepare_point(
     status[k] = _PENDING
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, nogil=True)
 def _prepare_parallel(
     coefficients, width, height, points, half, fz, fx, fy, df, hinv, min_df, status
 ):
@@ -254,7 +260,7 @@ def _prepare_parallel(
         )
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _prepare_serial(
     coefficients, width, height, points, half, fz, fx, fy, df, hinv, min_df, status
 ):
@@ -423,7 +429,7 @@ def _refine_block(
         status[m] = outcome
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, nogil=True)
 def _refine_parallel(
     coefficients,
     width,
@@ -471,7 +477,7 @@ def _refine_parallel(
         )
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _refine_serial(
     coefficients,
     width,
@@ -515,6 +521,28 @@ def _refine_serial(
         iterations,
         status,
     )
+
+
+@numba.njit(cache=True, nogil=True)
+def _coefficients_without_gil(image, weights, z_h, z_w, out):
+    bspline._coefficients(image, weights, z_h, z_w, out)
+
+
+def _target_coefficients(image: np.ndarray, sigma: float) -> np.ndarray:
+    """`bspline.spline_coefficients(image, gaussian_sigma=sigma)`, bit for bit (its own
+    kernel), entered through a dispatcher that releases the GIL."""
+    height, width = image.shape
+    if image.size == 0:
+        raise ValueError(f"expected a non-empty image, got shape {image.shape}")
+    out = np.empty((height + 2 * bspline.PAD, width + 2 * bspline.PAD))
+    _coefficients_without_gil(
+        image,
+        bspline._gaussian_weights(float(sigma)),
+        math.pow(bspline._POLE, height - 1),
+        math.pow(bspline._POLE, width - 1),
+        out,
+    )
+    return out
 
 
 class ICGN:
@@ -671,7 +699,7 @@ class ICGN:
         image = np.asarray(target)
         if image.ndim != 2:
             raise ValueError(f"target must be a 2-D grey image, got shape {image.shape}")
-        coefficients = self.coefficients(image)
+        coefficients = _target_coefficients(image, self.prefilter_sigma)
         coefficients.flags.writeable = False
         return PreparedTarget(
             coefficients=coefficients,
