@@ -23,8 +23,8 @@ backdrop), a little rotated, off-centre, with the grips in view:
    centre along the axis is the mean of the midpoints between the two shoulders' crossings of
    that level and of 2, 4, ... 32 times it: the shoulders' symmetry fixes it to a fraction of
    a pixel where the flat start of the arcs would not. A parallel length that touches the
-   image's side is refused; one that runs out of the image at one end too (its centre is not
-   in view); one that runs out at both ends (a view shorter than it) is centred on the view;
+   image's side is refused; one that runs out of the image at one end or both (a view that
+   cuts it) is centred on the part in view, and says which ends are in view;
 4. a straight line fitted to each edge over the middle 80 % of the run (points beyond 3 median
    deviations dropped once): the axis is their mean direction, the width their distance across
    it at the centre, the centre halfway between the edges.
@@ -87,9 +87,9 @@ class SpecimenDetection:
             first at the smaller y (the smaller x for a horizontal specimen).
         parallel_length_px: distance between the ends, px.
         edge_rms_px: root mean square of the edge points about their fitted lines, px.
-        ends_in_view: False when the parallel length runs out of the image at both ends (a
-            view shorter than it): the ends are then the image's, and the centre along the
-            axis the middle of the view's part of it.
+        ends_in_view: whether each end of the parallel length (in the order of
+            `parallel_ends_px`) is in the image; an end out of view is where the image ends,
+            and the centre along the axis is then the middle of the part in view.
         dark_on_bright: the specimen is darker than its background (back-lit).
         outline_px: (n, 2) the outline of the region found (the specimen, with any grip that
             touches it), px, for display.
@@ -101,7 +101,7 @@ class SpecimenDetection:
     parallel_ends_px: tuple[tuple[float, float], tuple[float, float]]
     parallel_length_px: float
     edge_rms_px: float
-    ends_in_view: bool
+    ends_in_view: tuple[bool, bool]
     dark_on_bright: bool
     outline_px: np.ndarray
 
@@ -121,7 +121,7 @@ class SpecimenDetection:
             "parallel_length_px": self.parallel_length_px,
             "parallel_ends_px": [list(end) for end in self.parallel_ends_px],
             "edge_rms_px": self.edge_rms_px,
-            "ends_in_view": self.ends_in_view,
+            "ends_in_view": list(self.ends_in_view),
             "lighting": "dark on bright" if self.dark_on_bright else "bright on dark",
         }
 
@@ -160,6 +160,7 @@ def detect_specimen(image: np.ndarray) -> SpecimenDetection:
     first, second = ends
     if (first[1], first[0]) > (second[1], second[0]):
         first, second = second, first
+        ends_in_view = (ends_in_view[1], ends_in_view[0])
     return SpecimenDetection(
         centre_px=(float(centre[0]), float(centre[1])),
         axis_deg=axis_deg,
@@ -237,7 +238,9 @@ def _measure_along(
     points: np.ndarray,
     centre: np.ndarray,
     theta: float,
-) -> tuple[np.ndarray, float, tuple[float, tuple[np.ndarray, np.ndarray], float, bool]]:
+) -> tuple[
+    np.ndarray, float, tuple[float, tuple[np.ndarray, np.ndarray], float, tuple[bool, bool]]
+]:
     """One pass: resample along `theta` through `centre`, locate the edges, find the parallel
     length and fit its edges. Returns the new centre, axis and (width, ends, rms, ends in
     view)."""
@@ -286,15 +289,10 @@ def _measure_along(
             f"the specimen's parallel length touches the image's edge near ({x:.0f}, {y:.0f}) px"
         )
     first_end, s_centre, last_end = _ends(s_grid, widths, start, stop, in_view[:, centre_col])
-    if (first_end is None) != (last_end is None):
-        x, y = centre + s_grid[start if first_end is None else stop - 1] * along
-        raise SpecimenNotFound(
-            f"the specimen's parallel length runs out of the image at ({x:.0f}, {y:.0f}) px: "
-            "its end, and so its centre, are not in view"
-        )
-    ends_in_view = first_end is not None
+    ends_in_view = (first_end is not None, last_end is not None)
     if first_end is None or last_end is None:
-        first_end, last_end = float(s_grid[start]), float(s_grid[stop - 1])
+        first_end = float(s_grid[start]) if first_end is None else first_end
+        last_end = float(s_grid[stop - 1]) if last_end is None else last_end
         s_centre = 0.5 * (first_end + last_end)
     trim = max(1, int(0.1 * (stop - start)))
     rows = np.arange(start + trim, stop - trim)

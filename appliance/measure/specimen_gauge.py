@@ -51,6 +51,7 @@ class GaugeCentre:
         if self.detection is not None:
             facts["specimen_width_px"] = self.detection.width_px
             facts["specimen_parallel_length_px"] = self.detection.parallel_length_px
+            facts["specimen_parallel_ends_in_view"] = list(self.detection.ends_in_view)
         return facts
 
 

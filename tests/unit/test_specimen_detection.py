@@ -1,6 +1,6 @@
 """Specimen detection on rendered views: axis, centre and width against the view's truth, the
-parallel length, and the refusals (no specimen, two, one at the image's edge, one whose
-parallel length runs out of the image)."""
+parallel length, the refusals (no specimen, two, one at the image's edge), and a parallel
+length the image cuts, centred on its part in view."""
 
 from __future__ import annotations
 
@@ -64,7 +64,7 @@ def test_the_axis_centre_and_width_of_a_rotated_off_centre_specimen_are_found(
     assert np.hypot(*np.subtract(found.centre_px, truth.centre_px)) < 2.0
     assert found.width_px == pytest.approx(truth.width_px, abs=0.2)
     assert found.dark_on_bright == (lighting != "front-dark")
-    assert found.ends_in_view
+    assert found.ends_in_view == (True, True)
     assert truth.parallel_length_px < found.parallel_length_px < 1.2 * truth.parallel_length_px
     ends = np.array(found.parallel_ends_px)
     assert np.allclose(ends.mean(axis=0), found.centre_px, atol=1.0)
@@ -105,16 +105,21 @@ def test_a_specimen_cut_by_the_side_of_the_image_is_refused():
         detect_specimen(image)
 
 
-def test_a_parallel_length_running_out_of_one_end_of_the_image_is_refused():
-    image, _ = _view("iso6892", centre_px=(511.5, 1850.0), lighting="front-dark")
-    with pytest.raises(SpecimenNotFound, match="runs out of the image at"):
-        detect_specimen(image)
+def test_a_parallel_length_cut_by_the_image_at_one_end_is_centred_on_its_part_in_view():
+    image, truth = _view("iso6892", centre_px=(511.5, 1850.0), lighting="front-dark")
+    found = detect_specimen(image)
+    assert found.ends_in_view == (True, False)
+    (_, top), (_, bottom) = found.parallel_ends_px
+    assert top == pytest.approx(1850.0 - 0.5 * truth.parallel_length_px, abs=40.0)
+    assert bottom > 2030.0
+    assert found.centre_px[1] == pytest.approx(0.5 * (top + bottom), abs=0.5)
+    assert found.width_px == pytest.approx(truth.width_px, abs=0.2)
 
 
 def test_a_parallel_length_longer_than_the_view_is_centred_on_the_view():
     image, truth = _view("iso6892", centre_px=(511.5, 300.0), lighting="front-dark")
     found = detect_specimen(image[:600])
-    assert not found.ends_in_view
+    assert found.ends_in_view == (False, False)
     assert found.centre_px[1] == pytest.approx(299.5, abs=8.0)
     assert found.width_px == pytest.approx(truth.width_px, abs=0.2)
 
