@@ -16,10 +16,11 @@ backdrop), a little rotated, off-centre, with the grips in view:
    axis located to a fraction of a pixel where the profile crosses halfway between the grey
    levels just outside and just inside the edge; a row whose width stands out from its
    neighbours' (a speckle fooled the edge search) is left out;
-3. the parallel length: the longest run of rows whose width exceeds the narrowest by no more
-   than `PARALLEL_TOLERANCE` (a shoulder, a tab or a grip is wider); its ends are where the width
-   has departed from the parallel width by that tolerance, so they lie a little beyond the
-   tangent points of the transition arcs (about 1.7 mm for an ISO 37 type 1 dumb-bell). Its
+3. the parallel length (`appliance.measure.specimen_profile`): the longest run of rows whose
+   width exceeds the narrowest by no more than `PARALLEL_TOLERANCE` (a shoulder, a tab or a
+   grip is wider); its ends are where the width has departed from the parallel width by that
+   tolerance, so they lie a little beyond the tangent points of the transition arcs (about
+   1.7 mm for an ISO 37 type 1 dumb-bell). Its
    centre along the axis is the mean of the midpoints between the two shoulders' crossings of
    that level and of 2, 4, ... 32 times it: the shoulders' symmetry fixes it to a fraction of
    a pixel where the flat start of the arcs would not. A parallel length that touches the
@@ -42,6 +43,13 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from appliance.measure.specimen_profile import (
+    parallel_ends,
+    parallel_run,
+    robust_line,
+    running_median,
+)
+
 WORKING_SIZE_PX = 512
 """Longest side of the reduced copy that is segmented, px."""
 MIN_AREA_FRACTION = 0.003
@@ -53,11 +61,6 @@ MIN_SEPARATION = 0.8
 two populations (a uniform image with noise scores about 0.64, a specimen over 0.85)."""
 EDGE_SMOOTHING_PX = 15
 """Rows averaged along the axis before the edges are located, px."""
-PARALLEL_TOLERANCE = (0.8, 0.01)
-"""Width above the parallel width that ends the parallel length: the larger of 0.8 px and 1 %."""
-BUMP_TOLERANCES = 3.0
-"""A stretch wider than the parallel width by less than this many tolerances, narrow again on
-both sides, is a speckle's doing, not a shoulder (which widens on to the tab)."""
 OUTLIER_WINDOW_PX = 61
 OUTLIER_PX = 1.0
 """A row whose width differs from the median of the `OUTLIER_WINDOW_PX` rows about it by more
@@ -274,11 +277,11 @@ def _measure_along(
     centre_col = int(np.argmin(np.abs(t_grid)))
     left, right, touching = _edges(strip, mask > 0, in_view, region.sign, centre_col)
     widths = right - left
-    deviation = np.abs(widths - _running_median(widths, OUTLIER_WINDOW_PX))
+    deviation = np.abs(widths - running_median(widths, OUTLIER_WINDOW_PX))
     spread = 4 * 1.4826 * np.nanmedian(deviation) if np.isfinite(deviation).any() else 0.0
     outliers = ~(deviation <= max(OUTLIER_PX, spread))
     left[outliers] = right[outliers] = widths[outliers] = np.nan
-    run = _parallel_run(widths)
+    run = parallel_run(widths, EDGE_SMOOTHING_PX)
     if run is None and not touching.any():
         raise SpecimenNotFound("the specimen has no parallel length long enough to measure")
     start, stop = run if run is not None else (0, len(widths))
@@ -288,7 +291,9 @@ def _measure_along(
         raise SpecimenNotFound(
             f"the specimen's parallel length touches the image's edge near ({x:.0f}, {y:.0f}) px"
         )
-    first_end, s_centre, last_end = _ends(s_grid, widths, start, stop, in_view[:, centre_col])
+    first_end, s_centre, last_end = parallel_ends(
+        s_grid, widths, start, stop, in_view[:, centre_col]
+    )
     ends_in_view = (first_end is not None, last_end is not None)
     if first_end is None or last_end is None:
         first_end = float(s_grid[start]) if first_end is None else first_end
@@ -296,8 +301,8 @@ def _measure_along(
         s_centre = 0.5 * (first_end + last_end)
     trim = max(1, int(0.1 * (stop - start)))
     rows = np.arange(start + trim, stop - trim)
-    left_line, left_rms = _robust_line(s_grid[rows], t_grid[0] + left[rows])
-    right_line, right_rms = _robust_line(s_grid[rows], t_grid[0] + right[rows])
+    left_line, left_rms = robust_line(s_grid[rows], t_grid[0] + left[rows])
+    right_line, right_rms = robust_line(s_grid[rows], t_grid[0] + right[rows])
     s_mid = s_centre
     slope = 0.5 * (left_line[0] + right_line[0])
     tilt = math.atan(slope)
@@ -370,149 +375,3 @@ def _crossing(profile: np.ndarray, j: int, step: int, sign: float) -> float:
             return math.nan
         edge = found
     return edge
-
-
-def _parallel_run(widths: np.ndarray) -> tuple[int, int] | None:
-    """[start, stop) rows of the longest run whose width (a running median) exceeds the
-    parallel width by no more than the tolerance, bumps of less than `BUMP_TOLERANCES` with
-    narrow rows on both sides included; None when shorter than 20 rows."""
-    valid = np.isfinite(widths)
-    if valid.sum() < 20:
-        return None
-    smooth = _running_median(widths, EDGE_SMOOTHING_PX)
-    finite = smooth[np.isfinite(smooth)]
-    if finite.size == 0:
-        return None
-    reference = float(finite.min())
-    for _ in range(2):
-        tolerance = max(PARALLEL_TOLERANCE[0], PARALLEL_TOLERANCE[1] * reference)
-        reference = float(np.median(finite[finite <= reference + tolerance]))
-    tolerance = max(PARALLEL_TOLERANCE[0], PARALLEL_TOLERANCE[1] * reference)
-    excess = smooth - reference
-    within = ~(excess > tolerance)
-    labels, count = ndimage.label(~within)
-    for number in range(1, count + 1):
-        rows = np.nonzero(labels == number)[0]
-        first, last = rows[0], rows[-1]
-        bounded = first > 0 and last < len(smooth) - 1
-        bounded = bounded and np.isfinite(smooth[first - 1]) and np.isfinite(smooth[last + 1])
-        if bounded and np.nanmax(excess[rows]) < BUMP_TOLERANCES * tolerance:
-            within[rows] = True
-    best: tuple[int, int] | None = None
-    start = None
-    for i, flag in enumerate(np.append(within, False)):
-        if flag and start is None:
-            start = i
-        elif not flag and start is not None:
-            if best is None or i - start > best[1] - best[0]:
-                best = (start, i)
-            start = None
-    if best is None:
-        return None
-    finite_rows = np.nonzero(np.isfinite(smooth[best[0] : best[1]]))[0] + best[0]
-    if finite_rows.size < 20:
-        return None
-    return int(finite_rows[0]), int(finite_rows[-1]) + 1
-
-
-def _ends(
-    s_grid: np.ndarray, widths: np.ndarray, start: int, stop: int, in_view: np.ndarray
-) -> tuple[float | None, float, float | None]:
-    """The parallel length's ends and its centre along the axis (positions on `s_grid`).
-
-    The ends are where the width, going outward from the run [start, stop), first exceeds the
-    parallel width by the tolerance (interpolated between rows). The centre is the mean of the
-    midpoints between the two sides' crossings of that level and of 2, 4, ... 32 times it,
-    as far as both sides reach them within a quarter of the run beyond its ends (the steep
-    part of the shoulders, before any grip): the shoulders' symmetry fixes it better than the
-    flat start of the transition arcs does. An end is None where the width does not depart
-    from the parallel width before the image ends (`in_view` False).
-    """
-    smooth = _running_mean(widths, 5)
-    reference = float(np.nanmedian(smooth[start:stop]))
-    tolerance = max(PARALLEL_TOLERANCE[0], PARALLEL_TOLERANCE[1] * reference)
-    reach = max(1, (stop - start) // 4)
-    midpoints = []
-    ends: tuple[float | None, float | None] = (None, None)
-    for k in range(6):
-        level = reference + tolerance * 2**k
-        low = _outward_crossing(s_grid, smooth, start, -1, level, reach, in_view)
-        high = _outward_crossing(s_grid, smooth, stop - 1, 1, level, reach, in_view)
-        if k == 0:
-            ends = (
-                float(s_grid[start]) if low is not None and math.isnan(low) else low,
-                float(s_grid[stop - 1]) if high is not None and math.isnan(high) else high,
-            )
-        if low is None or high is None or math.isnan(low) or math.isnan(high):
-            break
-        midpoints.append(0.5 * (low + high))
-    low, high = ends
-    if midpoints:
-        centre = float(np.mean(midpoints))
-    elif low is not None and high is not None:
-        centre = 0.5 * (low + high)
-    else:
-        centre = math.nan
-    return low, centre, high
-
-
-def _outward_crossing(
-    s_grid: np.ndarray,
-    widths: np.ndarray,
-    row: int,
-    step: int,
-    level: float,
-    reach: int,
-    in_view: np.ndarray,
-) -> float | None:
-    """Position where `widths`, walked from `row` in direction `step` over the rows that have
-    one, first rises above `level`; None when the image ends first, NaN when it does not
-    within `reach` rows."""
-    if not widths[row] <= level:
-        return float(s_grid[row])
-    for nxt in range(row + step, row + step * (reach + 1), step):
-        if not 0 <= nxt < len(widths) or not in_view[nxt]:
-            return None
-        if not np.isfinite(widths[nxt]):
-            continue
-        if widths[nxt] > level:
-            fraction = (level - widths[row]) / (widths[nxt] - widths[row])
-            return float(s_grid[row] + (s_grid[nxt] - s_grid[row]) * fraction)
-        row = nxt
-    return math.nan
-
-
-def _running_median(values: np.ndarray, window: int) -> np.ndarray:
-    """Median of the finite values in a centred window of `window` rows (NaN where fewer than
-    half of them are finite)."""
-    half = window // 2
-    padded = np.pad(values, half, constant_values=np.nan)
-    windows = np.lib.stride_tricks.sliding_window_view(padded, window)
-    enough = np.isfinite(windows).sum(axis=1) >= (window + 1) // 2
-    out = np.full(len(values), np.nan)
-    if enough.any():
-        out[enough] = np.nanmedian(windows[enough], axis=1)
-    return out
-
-
-def _running_mean(values: np.ndarray, window: int) -> np.ndarray:
-    """Mean of the finite values in a centred window of `window` rows (NaN where there is
-    none)."""
-    finite = np.isfinite(values)
-    total = ndimage.uniform_filter1d(np.where(finite, values, 0.0), window, mode="nearest")
-    count = ndimage.uniform_filter1d(finite.astype(float), window, mode="nearest")
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(count > 0.5 / window, total / np.maximum(count, 1e-12), np.nan)
-
-
-def _robust_line(s: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, float]:
-    """Least-squares line t(s) (polyval coefficients), refitted once without the points beyond
-    3 median absolute deviations; and the rms of the points kept about it."""
-    keep = np.isfinite(t)
-    line = np.polyfit(s[keep], t[keep], 1)
-    residual = t - np.polyval(line, s)
-    mad = np.nanmedian(np.abs(residual[keep]))
-    keep &= np.abs(residual) <= max(3 * 1.4826 * mad, 1e-6)
-    line = np.polyfit(s[keep], t[keep], 1)
-    rms = float(np.sqrt(np.mean((t[keep] - np.polyval(line, s[keep])) ** 2)))
-    return line, rms
