@@ -338,7 +338,8 @@ class SimWorld:
 
     @property
     def specimen_centre_px(self) -> tuple[float, float]:
-        """Pixel (x, y) of the undeformed specimen's centre."""
+        """Pixel (x, y) of the undeformed specimen's centre (for scoring only: a test places
+        its gauge on the specimen it detects in the reference frame)."""
         scene = self.scene
         if isinstance(scene, BenchScene):
             x, y = scene.sensor_positions(np.zeros((1, 2)), self.machine.deformation_at(0.0), 0.0)[
