@@ -331,22 +331,26 @@ def _image_record(
     found = np.asarray(result.status) == PointStatus.CONVERGED
     moved = xy + np.column_stack([result.u, result.v])
     in_plane = plane.fields(moved, found) if plane is not None else [{}] * len(xy)
+    names = ("u", "v", "ux", "uy", "vx", "vy")
+    columns = [getattr(result, name).tolist() for name in names]
+    zncc = result.zncc.tolist()
+    iterations = result.iterations.tolist()
+    labels = {int(status): status.name.lower() for status in PointStatus}
     records = []
-    for k in range(len(xy)):
-        status = PointStatus(int(result.status[k]))
-        found = status is PointStatus.CONVERGED
+    for k, ((x, y), status) in enumerate(zip(xy.tolist(), result.status.tolist(), strict=True)):
+        ok = status == PointStatus.CONVERGED
         shape = {
-            name: _finite_or_none(getattr(result, name)[k]) if found else None
-            for name in ("u", "v", "ux", "uy", "vx", "vy")
+            name: _finite_or_none(column[k]) if ok else None
+            for name, column in zip(names, columns, strict=True)
         }
         records.append(
             {
-                "x": float(xy[k, 0]),
-                "y": float(xy[k, 1]),
+                "x": float(x),
+                "y": float(y),
                 **shape,
-                "zncc": _finite_or_none(result.zncc[k]),
-                "iterations": int(result.iterations[k]),
-                "status": status.name.lower(),
+                "zncc": _finite_or_none(zncc[k]),
+                "iterations": int(iterations[k]),
+                "status": labels[int(status)],
                 **in_plane[k],
             }
         )
