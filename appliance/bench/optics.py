@@ -16,9 +16,10 @@ simulated ChArUco views of the same bench's lens, the first view lying in the sp
    above 1 %, judged with the specimen's out-of-plane moves (the preset) and without them
    (what a calibration can correct); the ideal bench for reference;
 3. metal (ISO 6892-1, 10 mm/min) on the typical bench, to `until_strain` (2 %; the break is
-   ten minutes further): with a telecentric lens class 0.2; with the entocentric lens (by a
-   calibration) the class reached, with the specimen's out-of-plane moves (thinning, slack)
-   and without, whose difference is their share of the error;
+   ten minutes further): with a telecentric lens class 0.2, by its nominal scale and by its
+   own calibration (`calibrate --telecentric`); with the entocentric lens (by a calibration)
+   the class reached, with the specimen's out-of-plane moves (thinning, slack) and without,
+   whose difference is their share of the error;
 4. `extensometer verify --sim --material metal` on each bench preset: the ISO 9513 class
    reached by the nominal scale, and on the typical bench with a calibration.
 
@@ -180,13 +181,11 @@ def metal_cases(out: Path, plan: Plan, calibrations: Calibrations) -> dict[str, 
     run = {"until_strain": plan.metal_until_strain, "until_break": False}
     entocentric = simulated(plan, "metal", "typical", run=run)
     calibration, made = calibrations.get("metal", "typical")
+    telecentric_calibration, telecentric_made = calibrations.get("metal", "typical", "telecentric")
+    telecentric = simulated(plan, "metal", "typical", run=run, sim={"lens": "telecentric"})
     in_plane = simulated(plan, "metal", "typical", run=run, sim=IN_PLANE)
     cases = [
-        run_case(
-            "telecentric lens",
-            simulated(plan, "metal", "typical", run=run, sim={"lens": "telecentric"}),
-            out / "metal-telecentric",
-        ),
+        run_case("telecentric lens", telecentric, out / "metal-telecentric"),
         run_case("entocentric lens, nominal scale", entocentric, out / "metal-entocentric"),
         run_case(
             "entocentric lens, calibrated",
@@ -198,6 +197,11 @@ def metal_cases(out: Path, plan: Plan, calibrations: Calibrations) -> dict[str, 
             calibrated(in_plane, calibration),
             out / "metal-entocentric-calibrated-in-plane",
         ),
+        run_case(
+            "telecentric lens, calibrated",
+            calibrated(telecentric, telecentric_calibration),
+            out / "metal-telecentric-calibrated",
+        ),
     ]
     moving, still = cases[2], cases[3]
     share = None
@@ -206,10 +210,14 @@ def metal_cases(out: Path, plan: Plan, calibrations: Calibrations) -> dict[str, 
     return {
         "until_strain": plan.metal_until_strain,
         "calibration": made,
+        "telecentric_calibration": telecentric_made,
         "cases": cases,
         "out_of_plane_share": share,
         "verdicts": {
             "telecentric lens: class 0.2": _verdict(cases[0].get("iso9513_class") == "0.2"),
+            "telecentric lens, calibrated: class 0.2": _verdict(
+                cases[4].get("iso9513_class") == "0.2"
+            ),
         },
     }
 

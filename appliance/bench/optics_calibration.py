@@ -92,14 +92,16 @@ def target_views(
     return paths
 
 
-def calibrate_views(paths: list[Path], target: CalibrationTarget) -> CameraCalibration:
+def calibrate_views(
+    paths: list[Path], target: CalibrationTarget, *, telecentric: bool = False
+) -> CameraCalibration:
     """The product's calibration from the images of `target` (the first is the specimen
-    plane)."""
+    plane); `telecentric`: fit a telecentric camera (`extensometer calibrate --telecentric`)."""
     views = []
     for path in paths:
         image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         views.append(find_target(target, image, path.name))
-    return calibrate(views, target, plane_index=0)
+    return calibrate(views, target, plane_index=0, telecentric=telecentric)
 
 
 def calibration_for(config: Config, folder: Path, *, seed: int) -> tuple[Path, dict[str, Any]]:
@@ -110,7 +112,7 @@ def calibration_for(config: Config, folder: Path, *, seed: int) -> tuple[Path, d
     started = time.perf_counter()
     target = target_for(world.lens_camera, world.specimen_plane)
     paths = target_views(world.lens_camera, world.specimen_plane, target, folder, seed=seed)
-    calibration = calibrate_views(paths, target)
+    calibration = calibrate_views(paths, target, telecentric=world.lens_camera.telecentric)
     figures = score(calibration, world.lens_camera, world.specimen_plane)
     figures["seed"] = seed
     figures["target"] = target.describe()
@@ -157,7 +159,8 @@ def calibration_config(
     bench: str = "typical", material: str = "rubber", sim: dict[str, Any] | None = None
 ) -> Config:
     """The configuration whose world is calibrated: `material`'s camera on `bench`, with the
-    `[sim]` keys `sim` set."""
+    `[sim]` keys `sim` set (`lens = "telecentric"`: the bench's telecentric lens, calibrated
+    as such)."""
     config = Config()
     return dataclasses.replace(
         config,
@@ -180,15 +183,19 @@ class Calibrations:
         self._made: dict[tuple[str, str], tuple[Path, dict[str, Any]]] = {}
 
     def add(self, material: str, bench: str, path: Path, figures: dict[str, Any]) -> None:
-        """Keep a calibration made elsewhere for (`material`, `bench`)."""
-        self._made[(material, bench)] = (path, figures)
+        """Keep a calibration made elsewhere for (`material`, `bench`, its own lens)."""
+        self._made[(material, bench, None)] = (path, figures)
 
-    def get(self, material: str, bench: str) -> tuple[Path, dict[str, Any]]:
-        """The calibration file of `material`'s camera on `bench` and its figures (seed 1)."""
-        key = (material, bench)
+    def get(
+        self, material: str, bench: str, lens: str | None = None
+    ) -> tuple[Path, dict[str, Any]]:
+        """The calibration file of `material`'s camera on `bench` and its figures (seed 1);
+        `lens` replaces the bench's lens (`[sim] lens`)."""
+        key = (material, bench, lens)
         if key not in self._made:
-            folder = self._folder / f"{material}-{bench}"
-            config = calibration_config(bench, material, self._sim)
+            folder = self._folder / "-".join([material, bench, *([lens] if lens else [])])
+            sim = {**(self._sim or {}), **({"lens": lens} if lens else {})}
+            config = calibration_config(bench, material, sim)
             self._made[key] = calibration_for(config, folder, seed=1)
         return self._made[key]
 

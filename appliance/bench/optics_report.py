@@ -122,7 +122,9 @@ def _metal(section: dict[str, Any]) -> str:
         "## 3. Metal, ISO 6892-1 flat, 10 mm/min, typical bench",
         "",
         f"`run --sim` to `[run] until_strain = {section['until_strain']:g}` (not to break); "
-        f"{_made(section['calibration'])}. The specimen's out-of-plane moves (thinning, slack) "
+        f"entocentric lens: {_made(section['calibration'])}; telecentric lens "
+        f"(`calibrate --telecentric`): {_made(section['telecentric_calibration'])}. "
+        "The specimen's out-of-plane moves (thinning, slack) "
         f"make {share_text} of the calibrated entocentric run's largest strain error (1 - the "
         "error without them / the error with them).",
         "",

@@ -68,8 +68,13 @@ def test_the_metal_cases_and_the_out_of_plane_share_are_measured(results):
         "entocentric lens, nominal scale",
         "entocentric lens, calibrated",
         "entocentric lens, calibrated, specimen in its plane",
+        "telecentric lens, calibrated",
     ]
     assert all("error" not in c for c in metal["cases"])
+    assert metal["cases"][4]["measured_in"] == "object plane"
+    telecentric = metal["telecentric_calibration"]
+    assert telecentric["rms_reprojection_px"] < 0.1
+    assert abs(telecentric["scale_error_percent"]) < 0.05
     assert metal["out_of_plane_share"] is not None
     assert metal["out_of_plane_share"] <= 1.0
 
