@@ -7,7 +7,10 @@ Measured on one synthetic dense-speckle scene (1024 x 1024, subpixel translation
 - integer search time per point at subset 41 and radius 10, 50 and 100, for LPQ
   (`lpq_search`) and for ZNCC (`zncc_search`, i.e. `cv2.matchTemplate` TM_CCOEFF_NORMED);
 - `cv2.findTransformECC` (MOTION_AFFINE, gaussFiltSize=1) on the same points at subset 41,
-  the nearest widely used subpixel alternative.
+  the nearest widely used subpixel alternative;
+- `extensometer track` end to end against ECC on the same points and image files
+  (`appliance.bench.track_speed`): the ratio of their points per second in one run, on one
+  core and on two.
 
 Each time is the median of several repeats after a warm-up run (numba compilation excluded).
 """
@@ -27,6 +30,7 @@ import numpy as np
 
 from appliance import __version__
 from appliance.bench.results import emit_figures
+from appliance.bench.track_speed import format_track_table, measure_track_speed
 from appliance.dic import integer_search
 from appliance.dic.icgn import ICGN
 from appliance.dic.synthetic import AffineMapping, dense_speckle, render
@@ -163,6 +167,7 @@ def measure_speed() -> dict:
     icgn = _icgn_rates(reference, target)
     search = _search_times(reference, target)
     ecc = _ecc_rate(reference, target)
+    track = measure_track_speed()
     single_41 = next(r for r in icgn if r["subset"] == 41 and r["threads"] == 1)
     return {
         "software_version": __version__,
@@ -179,6 +184,7 @@ def measure_speed() -> dict:
         "icgn": icgn,
         "search": search,
         "ecc": ecc,
+        "track": track,
         "ratios": {
             "icgn_41_one_thread_over_ecc": single_41["points_per_s"] / ecc["points_per_s"],
             "lpq_over_zncc_radius_50": next(r for r in search if r["radius"] == 50)[
@@ -213,6 +219,7 @@ def format_table(figures: dict) -> str:
         f"IC-GN 41 one thread / ECC: {ratios['icgn_41_one_thread_over_ecc']:.1f}x; "
         f"LPQ / matchTemplate at radius 50: {ratios['lpq_over_zncc_radius_50']:.2f}"
     )
+    lines.append(format_track_table(figures["track"]))
     return "\n".join(lines)
 
 
@@ -221,7 +228,7 @@ def run_speed_benchmark(out: Path | None = None, as_json: bool = False) -> int:
     figures = measure_speed()
     emit_figures(
         "speed",
-        "Speed of the measurement core: IC-GN and integer search",
+        "Speed of the measurement core: IC-GN, integer search and track end to end",
         figures,
         format_table(figures),
         as_json=as_json,
