@@ -226,3 +226,30 @@ def test_the_report_page_goes_beside_the_summary(summary, page):
     assert OutputFiles(summary=Path(summary)).report_page == Path(page)
     assert OutputFiles(summary=Path(summary), report=Path("x.html")).report_page == Path("x.html")
     assert OutputFiles().report_page is None
+
+
+def test_the_cross_section_of_a_specimen_table():
+    from appliance.config import config_from_table
+
+    def area(**keys):
+        return series_module.cross_section_mm2(config_from_table({"specimen": keys}, "t").specimen)
+
+    assert area(width_mm=12.5, thickness_mm=2.0) == 25.0
+    assert area(diameter_mm=10.0) == pytest.approx(78.5398, rel=1e-6)
+    assert area(material="metal") is None
+
+
+@pytest.mark.parametrize(
+    ("keys", "message"),
+    [
+        ({"width_mm": 3.0, "diameter_mm": 5.0}, "diameter_mm: give either diameter_mm or"),
+        ({"thickness_mm": 2.0}, "width_mm: missing (width_mm and thickness_mm go together)"),
+        ({"material": "wood"}, "[specimen] material: must be one of metal, rubber"),
+    ],
+)
+def test_a_bad_specimen_table_is_refused_naming_the_key(keys, message):
+    from appliance.config import config_from_table
+    from appliance.errors import InputError
+
+    with pytest.raises(InputError, match=re.escape(message)):
+        config_from_table({"specimen": keys}, "site.toml")
