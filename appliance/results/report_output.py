@@ -18,7 +18,7 @@ from __future__ import annotations
 import contextlib
 import datetime
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -99,10 +99,11 @@ class TestReport:
         the summary.
         """
         facts = self._facts.facts if self._facts is not None else {}
+        devices = self._facts.devices if self._facts is not None else {}
         title = f"Tensile test {facts.get('test_id') or ''}".strip()
         page = report_html(
             title,
-            _facts_rows(outcome.as_dict()),
+            _facts_rows(outcome.as_dict(), devices),
             self.results,
             self.no_results_reason,
             self._figures(),
@@ -165,12 +166,13 @@ _FACT_ROWS = (
 )
 
 
-def _facts_rows(summary: dict[str, Any]) -> list[tuple[str, str]]:
+def _facts_rows(summary: dict[str, Any], devices: Mapping[str, str]) -> list[tuple[str, str]]:
     rows = [
         (label, _text(summary[key]))
         for key, label in _FACT_ROWS
         if key in summary and summary[key] is not None
     ]
+    rows += [(name, text) for name, text in devices.items() if text]
     created = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
     return [*rows, ("report written", created)]
 
