@@ -12,7 +12,8 @@ intersected with the calibrated plane), and its displacement there since the ref
 calibration (`calibration`: file, checksum, scale).
 
 The work runs on `--threads` workers (default: every core this process may use, up to numba's
-thread count): the ZNCC search of all points in batches (`appliance.dic.batched_search`), IC-GN
+thread count): the ZNCC search of all points in batches (`appliance.dic.batched_search`) or the
+LPQ search's single compiled pass, IC-GN
 on the parallel kernel, and the next image read and prepared (its spline coefficients) while
 the current one is measured. The numbers
 do not depend on the thread count. The JSON says the throughput (`throughput`: points and
@@ -149,6 +150,7 @@ def track_images(args: argparse.Namespace) -> int:
         raise InputError(
             f"track: --lpq-window: lpq_window {args.lpq_window} exceeds subset {args.subset}"
         )
+    numba.set_num_threads(args.threads)
     warm_up_s = _Pipeline.warm_up(args, reference)
     pipeline = _Pipeline(args, reference, points.xy)
     plane = _Plane(calibration.projection(), points.xy) if calibration is not None else None

@@ -311,6 +311,48 @@ def _reliability_kernel(cost, bi, bj):
     return min(max(1.0 - c1 / c2, 0.0), 1.0)
 
 
+@njit(cache=True)
+def _lpq_point(
+    k, codes, codes_t, offsets, shapes, subset, ref_counts, weights, scale, maps, map_offsets, best
+):
+    rows, cols = shapes[k, 0], shapes[k, 1]
+    region = codes[offsets[k] : offsets[k] + rows * cols].reshape((rows, cols))
+    region_t = codes_t[offsets[k] : offsets[k] + rows * cols].reshape((cols, rows))
+    map_rows, map_cols = rows - subset + 1, cols - subset + 1
+    cost = maps[map_offsets[k] : map_offsets[k] + map_rows * map_cols].reshape((map_rows, map_cols))
+    _chi_square_map_serial(region, region_t, subset, ref_counts[k], weights, scale, cost)
+    flat = np.argmin(cost)
+    bi, bj = flat // map_cols, flat % map_cols
+    best[k, 0] = cost[bi, bj]
+    best[k, 1] = _reliability_kernel(cost, bi, bj)
+    best[k, 2] = bi
+    best[k, 3] = bj
+
+
+@njit(cache=True, parallel=True)
+def _lpq_points(
+    codes, codes_t, offsets, shapes, subset, ref_counts, weights, scale, maps, map_offsets, best
+):
+    """Chi-square map, winner and reliability of every point, in one parallel pass: the
+    kernels `lpq_search` runs point by point (the maps are sums of exact integers, the same
+    on any path), so the numbers are the same."""
+    for k in prange(shapes.shape[0]):
+        _lpq_point(
+            k,
+            codes,
+            codes_t,
+            offsets,
+            shapes,
+            subset,
+            ref_counts,
+            weights,
+            scale,
+            maps,
+            map_offsets,
+            best,
+        )
+
+
 # ---------------------------------------------------------------------------------------------
 # Geometry helpers
 
@@ -686,10 +728,11 @@ def lpq_search(
 
     The target's LPQ code image is computed once over the union of the search regions (over
     their bounding box when that is no larger than their summed areas, else region by region),
-    and the reference subset's histogram once per point (and pre-warp). The histograms of all
-    candidate blocks come from the sliding update of ``chi_square_map``; the winner is the
-    minimum of the chi-square map (first in row-major order on ties) and its reliability follows
-    the module docstring.
+    and the reference subset's histogram once per point (and pre-warp); without pre-warps the
+    maps of all points are computed in one compiled pass, in parallel on numba's threads. The
+    histograms of all candidate blocks come from the sliding update of ``chi_square_map``; the
+    winner is the minimum of the chi-square map (first in row-major order on ties) and its
+    reliability follows the module docstring.
 
     Codes near an image edge are those of ``lpq_codes`` with reflected borders, so a subset may
     touch the edge. A histogram ignores where in the subset each code sits, so the chi-square map
@@ -727,9 +770,73 @@ def lpq_search(
     weighting = _check_weights(weights, subset)
     fields = _empty_result(pts.shape[0])
     layout = _layout(ref.shape, tgt.shape, pts, g, subset, radius)
+    if warps is None:
+        _lpq_all_points(ref, tgt, layout, subset, params, weighting, fields)
+        return IntegerMatch(**fields)
     for k, cost, warp in _lpq_cost_maps(ref, tgt, layout, subset, params, warps, weighting):
         _finish(fields, k, cost, float(cost.min()), layout, warp)
     return IntegerMatch(**fields)
+
+
+_LPQ_BATCH_POINTS = 256
+"""Points whose maps are held at once by `_lpq_all_points`."""
+
+
+def _lpq_all_points(
+    ref: np.ndarray,
+    tgt: np.ndarray,
+    layout: _Layout,
+    subset: int,
+    params: LPQParams,
+    weighting: tuple[np.ndarray, float],
+    fields: dict[str, np.ndarray],
+) -> None:
+    """`lpq_search` without pre-warps: the codes gathered, then every point's map, winner and
+    reliability in one compiled pass per batch of points, on numba's threads."""
+    half = subset // 2
+    idx = np.flatnonzero(layout.valid)
+    if idx.size == 0:
+        return
+    tgt_boxes = np.stack(
+        [layout.y_lo - half, layout.y_hi + half + 1, layout.x_lo - half, layout.x_hi + half + 1],
+        axis=1,
+    )[idx]
+    ref_boxes = np.stack(
+        [layout.cy - half, layout.cy + half + 1, layout.cx - half, layout.cx + half + 1], axis=1
+    )[idx]
+    tgt_codes = _CodeSource(tgt, params, tgt_boxes)
+    ref_codes = _CodeSource(ref, params, ref_boxes)
+    for start in range(0, idx.size, _LPQ_BATCH_POINTS):
+        part = slice(start, start + _LPQ_BATCH_POINTS)
+        regions = [np.ascontiguousarray(tgt_codes.get(*box)) for box in tgt_boxes[part]]
+        shapes = np.array([r.shape for r in regions], dtype=np.int64)
+        sizes = shapes[:, 0] * shapes[:, 1]
+        offsets = np.r_[0, np.cumsum(sizes)[:-1]].astype(np.int64)
+        map_sizes = (shapes[:, 0] - subset + 1) * (shapes[:, 1] - subset + 1)
+        map_offsets = np.r_[0, np.cumsum(map_sizes)[:-1]].astype(np.int64)
+        counts = np.stack(
+            [np.bincount(ref_codes.get(*box).ravel(), minlength=N_BINS) for box in ref_boxes[part]]
+        ).astype(np.int64)
+        best = np.empty((len(regions), 4))
+        _lpq_points(
+            np.concatenate([r.ravel() for r in regions]),
+            np.concatenate([r.T.ravel() for r in regions]),
+            offsets,
+            shapes,
+            subset,
+            counts,
+            *weighting,
+            np.empty(int(map_sizes.sum())),
+            map_offsets,
+            best,
+        )
+        rows = idx[part]
+        bi, bj = best[:, 2].astype(np.int64), best[:, 3].astype(np.int64)
+        fields["u"][rows] = layout.x_lo[rows] + bj - layout.cx[rows]
+        fields["v"][rows] = layout.y_lo[rows] + bi - layout.cy[rows]
+        fields["score"][rows] = best[:, 0]
+        fields["reliability"][rows] = best[:, 1]
+        fields["valid"][rows] = True
 
 
 def zncc_search(

@@ -1,4 +1,4 @@
-"""The batched ZNCC search gives the per-point search's integer peaks.
+"""The batched integer searches give the per-point searches' peaks.
 
 `zncc_search` (one `cv2.matchTemplate` per point) is the plain path; `ZNCCSearch` the batched
 one. Their numerators are rounded differently (both float32), so peaks, validity and pre-warps
@@ -7,11 +7,13 @@ must be identical and the scores and reliabilities agree within a stated toleran
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pytest
 
 from appliance.dic.batched_search import ZNCCSearch, zncc_search_batched
-from appliance.dic.integer_search import IntegerMatch, zncc_search
+from appliance.dic.integer_search import IntegerMatch, chi_square_map, lpq_search, zncc_search
+from appliance.dic.lpq import code_histogram, lpq_codes
 from tests.unit.test_integer_search import affine_target, grid_points, speckle
 
 SCORE_TOLERANCE = 1e-5
@@ -125,3 +127,36 @@ def test_search_before_prepare_and_bad_arguments_are_refused() -> None:
         ZNCCSearch(subset=20)
     with pytest.raises(ValueError):
         ZNCCSearch(radius=-1)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_lpq_search_of_all_points_at_once_is_the_per_point_composition(pair, threads) -> None:
+    """LPQ's maps are sums of exact integers: the one-pass search must equal, bit for bit,
+    each point's map built from the public pieces (code image, histogram, chi-square map)."""
+    reference, target = pair
+    subset, radius, half = 21, 7, 10
+    points = np.vstack(
+        [grid_points(30, 230, 6, jitter=2.0, seed=2), [[12.0, 11.0], [289.0, 200.0]]]
+    )
+    guess = np.tile([3.0, -6.0], (len(points), 1))
+    guess[-2:] = [[-5.0, -5.0], [5.0, 0.0]]
+    saved = numba.get_num_threads()
+    numba.set_num_threads(threads)
+    try:
+        found = lpq_search(reference, target, points, subset=subset, radius=radius, guess=guess)
+    finally:
+        numba.set_num_threads(saved)
+    target_codes, reference_codes = lpq_codes(target), lpq_codes(reference)
+    assert found.valid.all()
+    for k, ((x, y), (gu, gv)) in enumerate(zip(points, guess, strict=True)):
+        cx, cy = int(np.floor(x + 0.5)), int(np.floor(y + 0.5))
+        x_lo, x_hi = max(cx + int(gu) - radius, half), min(cx + int(gu) + radius, 299 - half)
+        y_lo, y_hi = max(cy + int(gv) - radius, half), min(cy + int(gv) + radius, 259 - half)
+        region = target_codes[y_lo - half : y_hi + half + 1, x_lo - half : x_hi + half + 1]
+        counts = code_histogram(
+            reference_codes[cy - half : cy + half + 1, cx - half : cx + half + 1]
+        )
+        cost = chi_square_map(region, counts, subset)
+        bi, bj = divmod(int(np.argmin(cost)), cost.shape[1])
+        assert (found.u[k], found.v[k]) == (x_lo + bj - cx, y_lo + bi - cy)
+        assert found.score[k] == cost.min()
