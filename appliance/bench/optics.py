@@ -25,11 +25,14 @@ simulated ChArUco views of the same bench's lens, the first view lying in the sp
 
 `--quick` calibrates twice instead of three times, ends the rubber tests at 50 % and the metal
 tests at 0.5 %, and verifies the typical bench only: a look at every path, not the figures.
+`--only SECTION` (`rubber`, `metal` or `verify`) measures that section again into an existing
+report of the same mode and keeps the rest; the report says which section was measured when.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import json
 import subprocess
 import sys
@@ -39,8 +42,9 @@ from typing import Any
 
 from appliance.bench.optics_calibration import Calibrations, calibration_trials
 from appliance.bench.optics_report import report
-from appliance.bench.results import write_report
+from appliance.bench.results import command_line, write_report
 from appliance.config import Config
+from appliance.errors import InputError
 from appliance.runner import OutputFiles, run_test
 
 RUBBER_RELATIVE_TARGET = 0.003
@@ -291,30 +295,68 @@ def _verify(
     }
 
 
-def run_optics_benchmark(out: Path, *, quick: bool = False, plan: Plan | None = None) -> int:
+SECTIONS = ("rubber", "metal", "verify")
+"""The sections `--only` can measure again on their own."""
+
+
+def run_optics_benchmark(
+    out: Path, *, quick: bool = False, plan: Plan | None = None, only: str | None = None
+) -> int:
     """Run every target's cases, print the report, write `out/optics.md` and
     `out/optics.json` (each case's files under `out/optics/`); exit status 0. `plan` (else
-    `QUICK` or `FULL`) says how much is run."""
+    `QUICK` or `FULL`) says how much is run. `only` (one of `SECTIONS`) measures that section
+    again and keeps the others from `out/optics.json`, whose `remeasured` then says which
+    section was measured when and by which command.
+
+    Raises:
+        InputError: `only` without an earlier `out/optics.json` of the same mode.
+    """
     plan = plan or (QUICK if quick else FULL)
+    mode = "quick" if quick or plan is not FULL else "full"
+    earlier = _earlier_figures(out, mode) if only else None
     cases_dir = out / "optics"
     calibrations = Calibrations(cases_dir / "calibrations", plan.sim)
     started = time.perf_counter()
-    trials = calibration_trials(
-        cases_dir / "calibration-trials", list(plan.calibration_seeds), calibrations, plan.sim
-    )
-    figures = {
-        "mode": "quick" if quick or plan is not FULL else "full",
-        "calibration": trials,
-        "rubber": _section(rubber_cases, cases_dir, plan, calibrations),
-        "metal": _section(metal_cases, cases_dir, plan, calibrations),
-        "verify": _section(verify_cases, cases_dir, plan, calibrations),
-    }
-    figures["wall_s"] = time.perf_counter() - started
+    if earlier is not None and only is not None:
+        figures = dict(earlier["figures"])
+        figures[only] = _section(MEASURES[only], cases_dir, plan, calibrations)
+        figures["remeasured"] = [
+            *figures.get("remeasured", []),
+            {
+                "section": only,
+                "measured_utc": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
+                "command": command_line(),
+                "wall_s": time.perf_counter() - started,
+            },
+        ]
+        figures["first_measured_utc"] = figures.get("first_measured_utc", earlier["measured_utc"])
+    else:
+        trials = calibration_trials(
+            cases_dir / "calibration-trials", list(plan.calibration_seeds), calibrations, plan.sim
+        )
+        figures = {
+            "mode": mode,
+            "calibration": trials,
+            **{name: _section(MEASURES[name], cases_dir, plan, calibrations) for name in SECTIONS},
+        }
+        figures["wall_s"] = time.perf_counter() - started
     (cases_dir / "figures.json").write_text(json.dumps(figures, indent=1) + "\n", encoding="utf-8")
     body = report(figures)
     write_report(out, "optics", "Optics: camera calibration, object plane, ISO 9513", figures, body)
     print(body)
     return 0
+
+
+def _earlier_figures(out: Path, mode: str) -> dict[str, Any]:
+    path = out / "optics.json"
+    try:
+        document = json.loads(path.read_text(encoding="utf-8"))
+        figures = document["figures"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"{path}: no earlier optics report to complete ({exc})") from None
+    if figures.get("mode") != mode:
+        raise InputError(f"{path}: its mode is {figures.get('mode')!r}, this run's {mode!r}")
+    return document
 
 
 def _section(measure: Any, out: Path, plan: Plan, calibrations: Calibrations) -> Any:
@@ -323,6 +365,9 @@ def _section(measure: Any, out: Path, plan: Plan, calibrations: Calibrations) ->
     except Exception as exc:  # a section that fails is reported, the others still run
         print(f"{measure.__name__}: failed: {exc}", flush=True)
         return {"error": str(exc)}
+
+
+MEASURES = {"rubber": rubber_cases, "metal": metal_cases, "verify": verify_cases}
 
 
 def _verdict(met: bool) -> str:

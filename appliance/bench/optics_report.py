@@ -10,10 +10,16 @@ from appliance.bench.optics_calibration import TARGETS
 def report(figures: dict[str, Any]) -> str:
     """The report's body: one section per target, each figure with its target and verdict."""
     mode = "quick (fewer calibrations, shortened tests)" if figures["mode"] == "quick" else "full"
+    remeasured = "".join(
+        f" Section {r['section']} measured again on {r['measured_utc']} ({r['wall_s']:.0f} s, "
+        f"`{r['command']}`); the others on {figures['first_measured_utc']}."
+        for r in figures.get("remeasured", [])
+    )
     parts = [
-        f"Mode: {mode}; {figures['wall_s']:.0f} s in all. Errors are against the simulated "
-        "world's ground truth (the specimen plane's material points); every calibration is "
-        "made by the product's calibration from simulated ChArUco views of the bench's lens, "
+        f"Mode: {mode}; {figures['wall_s']:.0f} s in all.{remeasured} Errors are against the "
+        "simulated world's ground truth (the specimen plane's material points); every "
+        "calibration is made by the product's calibration from simulated ChArUco views of the "
+        "bench's lens, "
         "the first lying in the specimen plane. Each case's files are under `optics/`.",
         _calibration(figures["calibration"]),
         _failed(figures["rubber"], "2. Rubber") or _rubber(figures["rubber"]),

@@ -124,6 +124,11 @@ def _add_optics(benches: argparse._SubParsersAction) -> None:
     optics.add_argument(
         "--quick", action="store_true", help="fewer calibrations, shorter tests, one bench"
     )
+    optics.add_argument(
+        "--only",
+        choices=("rubber", "metal", "verify"),
+        help="measure this section again into the report already in --out, keeping the rest",
+    )
     _add_out(optics, required=True)
     optics.set_defaults(handler=_optics)
 
@@ -131,7 +136,7 @@ def _add_optics(benches: argparse._SubParsersAction) -> None:
 def _optics(args: argparse.Namespace) -> int:
     from appliance.bench.optics import run_optics_benchmark
 
-    return run_optics_benchmark(args.out, quick=args.quick)
+    return run_optics_benchmark(args.out, quick=args.quick, only=args.only)
 
 
 def _add_soak(benches: argparse._SubParsersAction) -> None:
