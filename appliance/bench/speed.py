@@ -162,7 +162,12 @@ def _ecc_rate(reference: np.ndarray, target: np.ndarray) -> dict:
 
 
 def measure_speed() -> dict:
-    """Run every measurement and return the figures as a JSON-ready dict."""
+    """Run every measurement and return the figures as a JSON-ready dict.
+
+    The host's load average is kept beside them (at the start and at the end): on a host shared
+    with other work the absolute rates drop, the ratios measured in one run much less.
+    """
+    load_at_start = os.getloadavg()[0]
     reference, target = _scene()
     icgn = _icgn_rates(reference, target)
     search = _search_times(reference, target)
@@ -179,6 +184,7 @@ def measure_speed() -> dict:
             "numpy": np.__version__,
             "opencv": cv2.__version__,
             "numba": numba.__version__,
+            "load_average_1_min": [load_at_start, os.getloadavg()[0]],
         },
         "scene": {"size": SIZE, "pattern": "dense_speckle seed 2024", "shift_px": SHIFT},
         "icgn": icgn,
@@ -196,7 +202,9 @@ def measure_speed() -> dict:
 
 def format_table(figures: dict) -> str:
     """Human-readable summary of `measure_speed` figures."""
-    lines = ["IC-GN (first-order, ZNSSD, bicubic B-spline), points/s:"]
+    start, end = figures["machine"]["load_average_1_min"]
+    lines = [f"Host load average (1 min) at the start and the end: {start:.2f}, {end:.2f}"]
+    lines.append("IC-GN (first-order, ZNSSD, bicubic B-spline), points/s:")
     lines.append(f"  {'subset':>6} {'threads':>7} {'points/s':>10} {'iter':>5} {'max err px':>10}")
     for r in figures["icgn"]:
         lines.append(
