@@ -61,6 +61,9 @@ MIN_SEPARATION = 0.8
 two populations (a uniform image with noise scores about 0.64, a specimen over 0.85)."""
 EDGE_SMOOTHING_PX = 15
 """Rows averaged along the axis before the edges are located, px."""
+FIT_TRIM = 0.1
+"""Fraction of the parallel length left out at each end when its edges are fitted (where the
+transition arcs begin)."""
 OUTLIER_WINDOW_PX = 61
 OUTLIER_PX = 1.0
 """A row whose width differs from the median of the `OUTLIER_WINDOW_PX` rows about it by more
@@ -299,7 +302,7 @@ def _measure_along(
         first_end = float(s_grid[start]) if first_end is None else first_end
         last_end = float(s_grid[stop - 1]) if last_end is None else last_end
         s_centre = 0.5 * (first_end + last_end)
-    trim = max(1, int(0.1 * (stop - start)))
+    trim = max(1, int(FIT_TRIM * (stop - start)))
     rows = np.arange(start + trim, stop - trim)
     left_line, left_rms = robust_line(s_grid[rows], t_grid[0] + left[rows])
     right_line, right_rms = robust_line(s_grid[rows], t_grid[0] + right[rows])
