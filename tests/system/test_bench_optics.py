@@ -10,6 +10,7 @@ import sys
 import pytest
 
 from appliance.bench.optics import Plan, run_optics_benchmark
+from appliance.errors import InputError
 
 REDUCED = Plan(
     calibration_seeds=(1,),
@@ -85,6 +86,21 @@ def test_verify_grades_the_bench(results):
     assert row["bench"] == "ideal"
     assert row["achieved_class"] in ("0.2", "0.5", "1", "2", None)
     assert "error" not in row
+
+
+def test_one_section_is_measured_again_into_the_report_keeping_the_others(results):
+    out, figures = results
+    assert run_optics_benchmark(out, plan=REDUCED, only="verify") == 0
+    again = json.loads((out / "optics.json").read_text())["figures"]
+    assert again["rubber"] == figures["rubber"] and again["metal"] == figures["metal"]
+    (remeasured,) = again["remeasured"]
+    assert remeasured["section"] == "verify"
+    assert "measured again" in (out / "optics.md").read_text()
+
+
+def test_a_section_alone_needs_an_earlier_report(tmp_path):
+    with pytest.raises(InputError, match="optics.json: no earlier optics report"):
+        run_optics_benchmark(tmp_path, plan=REDUCED, only="metal")
 
 
 def test_the_command_needs_an_output_directory():
