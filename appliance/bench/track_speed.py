@@ -44,7 +44,7 @@ from appliance.dic.synthetic import (
 SIZE = 1024
 GRID = 30
 SUBSET = 41
-IMAGES = 5
+IMAGES = 10
 STEP_PX = (1.3, -2.1)
 RADII = (10, 50)
 REPEATS = 3

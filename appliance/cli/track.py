@@ -152,14 +152,14 @@ def track_images(args: argparse.Namespace) -> int:
         )
     numba.set_num_threads(args.threads)
     warm_up_s = _Pipeline.warm_up(args, reference)
-    pipeline = _Pipeline(args, reference, points.xy)
+    targets = ICGN(subset=args.subset, prefilter_sigma=args.prefilter_sigma)
+    images = _Images(args.images, targets.prepare_target, ahead=args.threads > 1)
     plane = _Plane(calibration.projection(), points.xy) if calibration is not None else None
     guess = np.zeros((len(points.xy), 2)) if points.guess is None else points.guess.copy()
     measured: list[dict] = []
     try:
-        for path, image, prepared in _images_in_order(
-            args.images, pipeline.icgn.prepare_target, args.threads > 1
-        ):
+        pipeline = _Pipeline(args, reference, points.xy)
+        for path, image, prepared in images:
             if image.shape != reference.shape:
                 raise InputError(
                     f"{path}: size {image.shape[1]}x{image.shape[0]} differs from the "
@@ -173,6 +173,8 @@ def track_images(args: argparse.Namespace) -> int:
     except InputError as error:
         _emit(args, measured, calibration, None)
         raise error
+    finally:
+        images.close()
     seconds = time.perf_counter() - started - warm_up_s
     _emit(args, measured, calibration, _throughput(len(points.xy), len(measured), seconds, args))
     return 0
@@ -244,28 +246,41 @@ class _Pipeline:
         return self.icgn.compute(prepared, seeded)
 
 
-def _images_in_order(
-    paths: list[str], prepare: Callable[[np.ndarray], PreparedTarget], ahead: bool
-) -> Iterator[tuple[str, np.ndarray, PreparedTarget]]:
-    """(path, image, prepared image) of every path in order; with `ahead`, the next image is
-    read and prepared on another thread while the caller works on the current one (both
-    release the GIL). A bad file raises its `InputError` when its turn comes."""
+class _Images:
+    """(path, image, prepared image) of every path in order, from iterating. With `ahead`, the
+    next image is read and prepared (`prepare`: its spline coefficients) on another thread
+    while the caller works on the current one (both release the GIL), the first from the start
+    while the reference is being prepared. A bad file raises its `InputError` when its turn
+    comes. `close()` when done."""
 
-    def load(path: str) -> tuple[np.ndarray, PreparedTarget]:
+    def __init__(
+        self, paths: list[str], prepare: Callable[[np.ndarray], PreparedTarget], *, ahead: bool
+    ) -> None:
+        self._paths = paths
+        self._prepare = prepare
+        self._reader = ThreadPoolExecutor(max_workers=1) if ahead else None
+        self._pending: Future | None = None
+        if self._reader is not None:
+            self._pending = self._reader.submit(self._load, paths[0])
+
+    def _load(self, path: str) -> tuple[np.ndarray, PreparedTarget]:
         image = read_grey(path)
-        return image, prepare(image)
+        return image, self._prepare(image)
 
-    if not ahead:
-        for path in paths:
-            yield path, *load(path)
-        return
-    with ThreadPoolExecutor(max_workers=1) as reader:
-        pending: Future = reader.submit(load, paths[0])
-        for k, path in enumerate(paths):
-            image, prepared = pending.result()
-            if k + 1 < len(paths):
-                pending = reader.submit(load, paths[k + 1])
+    def __iter__(self) -> Iterator[tuple[str, np.ndarray, PreparedTarget]]:
+        for k, path in enumerate(self._paths):
+            if self._reader is None or self._pending is None:
+                yield path, *self._load(path)
+                continue
+            image, prepared = self._pending.result()
+            if k + 1 < len(self._paths):
+                self._pending = self._reader.submit(self._load, self._paths[k + 1])
             yield path, image, prepared
+
+    def close(self) -> None:
+        """Stop reading ahead (a read under way finishes first)."""
+        if self._reader is not None:
+            self._reader.shutdown(wait=True, cancel_futures=True)
 
 
 def _throughput(points: int, images: int, seconds: float, args: argparse.Namespace) -> dict:
