@@ -51,6 +51,12 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
     camera_check.add_argument(
         "--exposure-us", type=arguments.like_key(CameraConfig, "exposure_us"), help="exposure, us"
     )
+    camera_check.add_argument(
+        "--save",
+        type=Path,
+        metavar="FILE.png",
+        help="write the last frame with the detected specimen and the gauge drawn over it",
+    )
     camera_check.add_argument("--json", action="store_true", help="print JSON on stdout")
     camera_check.set_defaults(handler=check_camera)
 
@@ -110,6 +116,7 @@ def check_camera(args: argparse.Namespace) -> int:
             rate_hz=args.rate,
             exposure_us=args.exposure_us,
             calibration=calibration,
+            save_path=args.save,
         )
     except HardwareConfigError as error:
         raise InputError(f"camera-check: {error}") from None

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import pytest
 
 from appliance.sim.controller_server import ControllerServer
@@ -59,14 +60,27 @@ def test_camera_check_reports_what_the_camera_delivers(tmp_path):
 
 @needs_gige
 def test_camera_check_finds_a_camera_on_a_speckled_specimen_fit_to_measure(tmp_path):
+    saved = tmp_path / "check.png"
     with specimen_camera(tmp_path / "truth.jsonl", strain_rate_per_s=0.0) as camera:
         done = _cli(
-            "camera-check", "--camera", camera.url, "--frames", "20", "--rate", "20", "--json"
+            "camera-check",
+            "--camera",
+            camera.url,
+            "--frames",
+            "20",
+            "--rate",
+            "20",
+            "--save",
+            str(saved),
+            "--json",
         )
     assert done.returncode == 0, done.stdout + done.stderr
     report = json.loads(done.stdout)
     assert report["fit"] is True and report["problems"] == [] and report["lost"] == 0
     assert report["sharpest_gradient"] > 3.8
+    overlay = cv2.imread(str(saved), cv2.IMREAD_COLOR)
+    assert report["saved"] == str(saved)
+    assert overlay is not None and overlay.shape[:2] == (report["height"], report["width"])
 
 
 @needs_gige
