@@ -16,7 +16,10 @@ interest on a 30 x 30 grid, subset 41.
   kernels and the writing of its output left out).
 
 Each figure is the median of `REPEATS` runs, ECC's and track's interleaved, so that the ratios
-compare runs made at the same time on the same host.
+compare runs made at the same time on the same host. On a host shared with other work the
+second core may be busy: beside the two-core figures stands the host's own two-core scaling,
+measured in each repeat on a compiled loop with nothing to share (`host_two_core_scaling`: 2
+on an idle host).
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import time
 from pathlib import Path
 
 import cv2
+import numba
 import numpy as np
 
 from appliance.dic.synthetic import (
@@ -132,6 +136,36 @@ def _track_run(
     return document["throughput"]["points_per_s"], found
 
 
+@numba.njit(parallel=True, cache=True)
+def _busy_loop(rounds):
+    out = np.zeros(8)
+    for k in numba.prange(8):
+        total = 0.0
+        for i in range(rounds):
+            total += np.sin(i * 1e-3 + k)
+        out[k] = total
+    return out
+
+
+def _host_two_core_scaling(two: set[int]) -> float:
+    """Time of a compiled loop split over 8 equal parts on one thread over its time on two,
+    on the cores `two`: 2 when both cores are free."""
+    saved_affinity, saved_threads = os.sched_getaffinity(0), numba.get_num_threads()
+    os.sched_setaffinity(0, two)
+    _busy_loop(10)
+    seconds = []
+    try:
+        for threads in (1, 2):
+            numba.set_num_threads(threads)
+            started = time.perf_counter()
+            _busy_loop(2_000_000)
+            seconds.append(time.perf_counter() - started)
+    finally:
+        numba.set_num_threads(saved_threads)
+        os.sched_setaffinity(0, saved_affinity)
+    return seconds[0] / seconds[1]
+
+
 def _errors(found: np.ndarray) -> dict:
     truth = np.array(STEP_PX) * np.arange(1, IMAGES + 1)[:, None, None]
     error = np.hypot(*(found - truth).transpose(2, 0, 1))
@@ -150,6 +184,7 @@ def measure_track_speed() -> dict:
     cores = sorted(os.sched_getaffinity(0))
     one, two = {cores[0]}, set(cores[:2]) if len(cores) >= 2 else None
     ecc_rates: list[float] = []
+    host_scaling: list[float] = []
     track_rates: dict[tuple[int, int], list[float]] = {}
     accuracy: dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="track-speed-") as directory:
@@ -166,6 +201,8 @@ def measure_track_speed() -> dict:
                 cv2.setNumThreads(saved_threads)
             ecc_rates.append(n / seconds)
             accuracy["ecc"] = _errors(found)
+            if two is not None:
+                host_scaling.append(_host_two_core_scaling(two))
             for radius in RADII:
                 for group in (one, two):
                     if group is None:
@@ -199,6 +236,7 @@ def measure_track_speed() -> dict:
         },
         "repeats": REPEATS,
         "ecc_points_per_s_one_core": ecc,
+        "host_two_core_scaling": statistics.median(host_scaling) if host_scaling else None,
         "track": rows,
         "accuracy": accuracy,
     }
@@ -222,6 +260,9 @@ def format_track_table(figures: dict) -> str:
             + f" {r['one_core_over_ecc']:10.2f} "
             + ("        -" if double is None else f"{r['two_cores_over_one']:9.2f}")
         )
+    scaling = figures["host_two_core_scaling"]
+    if scaling is not None:
+        lines.append(f"  the host's own two-core scaling meanwhile (2 = idle): {scaling:.2f}")
     for name, row in figures["accuracy"].items():
         error = row["median_error_px"]
         lines.append(
