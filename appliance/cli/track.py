@@ -13,11 +13,11 @@ calibration (`calibration`: file, checksum, scale).
 
 The work runs on `--threads` workers (default: every core this process may use, up to numba's
 thread count): the ZNCC search of all points in batches (`appliance.dic.batched_search`) or the
-LPQ search's single compiled pass, IC-GN
-on the parallel kernel, and the next image read and prepared (its spline coefficients) while
-the current one is measured. The numbers
-do not depend on the thread count. The JSON says the throughput (`throughput`: points and
-images per second, from reading the reference to the last image measured, and the threads).
+LPQ search's single compiled pass, IC-GN on the parallel kernel, and the next image read and
+prepared (its spline coefficients) while the current one is measured. The numbers do not
+depend on the thread count. The JSON says the throughput (`throughput`: points and images per
+second from reading the reference to the last image measured, the compiled kernels' loading
+left out, and the threads).
 """
 
 from __future__ import annotations
