@@ -154,7 +154,10 @@ class GaugeConfig:
     are centred on (`centre_x_px`, `centre_y_px`) of the reference image along a loading axis
     `axis_deg` degrees from the image's +x towards +y (90 = vertical specimen) when both are
     given; left out, on the parallel length of the specimen detected in the reference image,
-    along its axis (`appliance.rig`).
+    along its axis (`appliance.rig`). `marks = "dots"` measures between two dots painted on
+    the specimen instead of the speckle (`appliance.measure.painted_marks`): found in the
+    reference image, they are the gauge, and `length_mm`, the centre and the points are not
+    used.
     """
 
     length_mm: float | None = field(default=None, metadata=_range(0.1, 10000.0))
@@ -164,6 +167,7 @@ class GaugeConfig:
     centre_x_px: float | None = field(default=None, metadata=_range(0.0, 65535.0))
     centre_y_px: float | None = field(default=None, metadata=_range(0.0, 65535.0))
     axis_deg: float = field(default=90.0, metadata=_range(-180.0, 180.0))
+    marks: str = field(default="speckle", metadata={"choices": ("speckle", "dots")})
 
 
 @dataclass(frozen=True)
@@ -225,6 +229,7 @@ class SimConfig:
     vibration_frequency_hz: float | None = field(default=None, metadata=_range(0.1, 1000.0))
     warm_up_drift_percent: float | None = field(default=None, metadata=_range(-1.0, 1.0))
     warm_up_time_constant_s: float | None = field(default=None, metadata=_range(1.0, 1e5))
+    painted_marks: str = field(default="none", metadata={"choices": ("none", "dots", "lines")})
 
 
 @dataclass(frozen=True)

@@ -48,9 +48,17 @@ from appliance import __version__
 from appliance.config import Config
 from appliance.errors import InputError
 from appliance.measure.frame_measurer import StopCriteria, StrainSample, tracker_and_gauges
-from appliance.measure.gauges import Calibration, StrainGauges, marks_outside, place_marks
+from appliance.measure.gauges import (
+    Calibration,
+    Gauge,
+    StrainGauges,
+    StrainGaugesLayout,
+    marks_outside,
+    place_marks,
+)
 from appliance.measure.image_quality import speckle_problem
-from appliance.measure.specimen_gauge import marks_beyond_parallel_length
+from appliance.measure.painted_marks import PaintedMarksNotFound, find_dots
+from appliance.measure.specimen_gauge import GaugeCentre, marks_beyond_parallel_length
 from appliance.measure.tracking import MarkTracker, warm_up_kernels
 from appliance.plan.exposure import ExposurePlan, exposure_for
 from appliance.plan.pacing import ExposurePacer, Replan
@@ -397,33 +405,15 @@ class _Reference:
         config, rig = self.config, self.rig
         g = config.gauge
         check_image_size(self.calibration, reference.image.shape[1], reference.image.shape[0])
-        centre = rig.gauge_centre(reference)
-        try:
-            points, layout = place_marks(
-                centre.centre_px,
-                rig.gauge_length_mm,
-                self.calibration,
-                axis_deg=centre.axis_deg,
-                mark_width_px=g.mark_spacing_px * (g.points_per_mark - 1),
-                points_per_mark=g.points_per_mark,
-                transverse_width_mm=g.transverse_width_mm or None,
-                along_axis=True,
-            )
-        except ValueError as exc:
-            raise InputError(f"[gauge] length_mm: {exc}") from None
-        outside = marks_outside(points, reference.image.shape, config.tracking.min_subset_px)
-        if outside is not None:
-            raise InputError(f"[gauge] length_mm: {outside}: shorten the gauge or move its centre")
-        if centre.detection is not None:
-            beyond = marks_beyond_parallel_length(points, centre.detection)
-            if beyond is not None:
-                raise InputError(f"[gauge] length_mm: {beyond}")
-        _check_speckle(reference.image, points, layout.marks, config)
+        if g.marks == "dots":
+            points, layout, centre = _painted_dots(reference.image, config)
+        else:
+            points, layout, centre = self._placed_marks(reference)
         if rig.world is not None:
             self.samples.truth = rig.world.gauge_truth(points, layout.axial, reference)
         self.points_placed = len(points)
         tracker, gauges = tracker_and_gauges(
-            config.tracking, reference.image, points, layout, self.calibration
+            config.tracking, reference.image, points, layout, self.calibration, g.marks
         )
         self.placement = {**centre.facts(), "gauge_length_achieved_mm": gauges.gauge_length_mm}
         self.facts.update(self.placement)
@@ -447,6 +437,58 @@ class _Reference:
         for output in self.outputs:
             output.begin(run_facts)
         return tracker, gauges
+
+    def _placed_marks(self, reference: Frame) -> tuple[np.ndarray, StrainGaugesLayout, GaugeCentre]:
+        """Speckle marks placed on the gauge centre of the reference frame, checked."""
+        config, rig = self.config, self.rig
+        g = config.gauge
+        centre = rig.gauge_centre(reference)
+        try:
+            points, layout = place_marks(
+                centre.centre_px,
+                rig.gauge_length_mm,
+                self.calibration,
+                axis_deg=centre.axis_deg,
+                mark_width_px=g.mark_spacing_px * (g.points_per_mark - 1),
+                points_per_mark=g.points_per_mark,
+                transverse_width_mm=g.transverse_width_mm or None,
+                along_axis=True,
+            )
+        except ValueError as exc:
+            raise InputError(f"[gauge] length_mm: {exc}") from None
+        outside = marks_outside(points, reference.image.shape, config.tracking.min_subset_px)
+        if outside is not None:
+            raise InputError(f"[gauge] length_mm: {outside}: shorten the gauge or move its centre")
+        if centre.detection is not None:
+            beyond = marks_beyond_parallel_length(points, centre.detection)
+            if beyond is not None:
+                raise InputError(f"[gauge] length_mm: {beyond}")
+        _check_speckle(reference.image, points, layout.marks, config)
+        return points, layout, centre
+
+
+def _painted_dots(
+    image: np.ndarray, config: Config
+) -> tuple[np.ndarray, StrainGaugesLayout, GaugeCentre]:
+    """The gauge between the two painted dots of the reference frame (`[gauge] marks =
+    "dots"`): their centroids, one point per mark, and the centre and axis they define.
+
+    Raises:
+        InputError: not exactly two dots (naming what was seen), or a transverse gauge asked.
+    """
+    if config.gauge.transverse_width_mm:
+        raise InputError(
+            '[gauge] transverse_width_mm: no transverse gauge with [gauge] marks = "dots"'
+        )
+    try:
+        first, second = find_dots(image)
+    except PaintedMarksNotFound as exc:
+        raise InputError(f'reference frame: {exc} ([gauge] marks = "dots")') from None
+    points = np.array([first.centre_px, second.centre_px])
+    dx, dy = points[1] - points[0]
+    axis_deg = float(np.degrees(np.arctan2(dy, dx)))
+    centre = GaugeCentre(tuple(points.mean(axis=0)), axis_deg, "painted dots")
+    return points, StrainGaugesLayout(Gauge((0,), (1,)), None), centre
 
 
 def _check_speckle(

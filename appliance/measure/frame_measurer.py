@@ -4,7 +4,9 @@
 (`appliance.run.loop`) and for the replay of a recording (`appliance.recording.replay`), so a
 replay on the recorded pixels reproduces the recorded strain exactly:
 
-1. the marks are tracked (`appliance.measure.tracking.MarkTracker`) at the frame's device time;
+1. the marks are tracked at the frame's device time: speckle by
+   `appliance.measure.tracking.MarkTracker`, painted dots by
+   `appliance.measure.painted_marks.PaintedDotTracker` (the same interface);
 2. their positions become strains (`appliance.measure.gauges.StrainGauges`); a zero request makes
    this frame's gauge lengths the new L0 first;
 3. the sample is *valid* when every axial gauge mark had a measured point and the force has
@@ -27,6 +29,7 @@ import numpy as np
 
 from appliance.measure.frame_windows import ImageWindow, cut_windows
 from appliance.measure.gauges import Calibration, StrainGauges, StrainGaugesLayout, StrainReading
+from appliance.measure.painted_marks import PaintedDotTracker
 from appliance.measure.tracking import MarkTracker, TrackerSettings, TrackStatus
 from hal.camera.base import Frame
 from hal.machine.base import MachineState
@@ -141,7 +144,8 @@ class FrameMeasurer:
     """Measures the frames of one test in order, from the reference on.
 
     Args:
-        tracker: the marks' tracker, prepared on the reference frame.
+        tracker: the marks' tracker, prepared on the reference frame (a `MarkTracker` or a
+            `PaintedDotTracker`).
         gauges: the strain gauges on the tracked points.
         reference_time_ns: device time of the reference frame, ns.
         break_detection: how a break is recognised.
@@ -150,7 +154,7 @@ class FrameMeasurer:
 
     def __init__(
         self,
-        tracker: MarkTracker,
+        tracker: MarkTracker | PaintedDotTracker,
         gauges: StrainGauges,
         reference_time_ns: int,
         *,
@@ -277,10 +281,16 @@ def tracker_and_gauges(
     points: np.ndarray,
     layout: StrainGaugesLayout,
     calibration: Calibration,
-) -> tuple[MarkTracker, StrainGauges]:
+    marks: str = "speckle",
+) -> tuple[MarkTracker | PaintedDotTracker, StrainGauges]:
     """The tracker and the gauges of a test, on its reference image and placed points: what a
-    `FrameMeasurer` measures with, live and in a replay."""
+    `FrameMeasurer` measures with, live and in a replay. `marks` is `[gauge] marks`:
+    "speckle" (correlation) or "dots" (painted dots, one point each)."""
     image = np.asarray(reference, dtype=np.float64)
-    tracker = MarkTracker(image, points, layout.marks, settings)
+    tracker: MarkTracker | PaintedDotTracker
+    if marks == "dots":
+        tracker = PaintedDotTracker(image, points, layout.marks, settings)
+    else:
+        tracker = MarkTracker(image, points, layout.marks, settings)
     gauges = StrainGauges(layout.axial, points, calibration, layout.transverse)
     return tracker, gauges

@@ -179,7 +179,7 @@ def _built(reader: RecordingReader, override: Path | None) -> _Setup:
         raise InputError(f"{reader.path}: the recorded points are not an (n, 2) array")
     try:
         tracker, gauges = tracker_and_gauges(
-            config.tracking, reference_image, points, layout, calibration
+            config.tracking, reference_image, points, layout, calibration, config.gauge.marks
         )
     except (ValueError, TypeError, IndexError) as exc:
         raise InputError(f"{reader.path}: the recorded marks cannot be tracked ({exc})") from None

@@ -30,6 +30,10 @@ the exposure, with N chosen so that no visible material point moves more than
 `image_positions` averages material point positions over the same samples, which is where a
 correlator finds a point under symmetric blur.
 
+Painted marks. `PaintedMarks` (optional) paints two dots or two lines across the specimen over
+the speckle, in material coordinates, into the same texture: they stretch with the material
+(a round dot becomes an ellipse as the rubber stretches) and are blurred by the same motion.
+
 Truth. `render` returns, with the image, a small mapping (times and sample count); gauge truth
 is derived from `material_points` and `image_positions`.
 """
@@ -138,6 +142,58 @@ class SpeckleCoat:
         )
 
 
+PaintedKind = Literal["dots", "lines"]
+
+
+@dataclass(frozen=True)
+class PaintedMarks:
+    """Two contrasting marks painted over the speckle coat, in material coordinates.
+
+    Attributes:
+        kind: "dots" (discs of radius `size_mm`) or "lines" (bands `2 * size_mm` wide across
+            the whole specimen).
+        centres_y_mm: material Y of each mark's centre, mm (on the specimen's axis, X = 0).
+        size_mm: radius of a dot, or half-width of a line, mm.
+        level: grey level of the paint, 8-bit scale.
+        edge_mm: width of the paint's edge (a linear ramp from paint to coat), mm.
+    """
+
+    kind: PaintedKind
+    centres_y_mm: tuple[float, ...]
+    size_mm: float
+    level: float = 250.0
+    edge_mm: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("dots", "lines"):
+            raise ValueError(f"kind must be 'dots' or 'lines', got {self.kind!r}")
+        if not self.size_mm > 0:
+            raise ValueError(f"size_mm must be > 0, got {self.size_mm}")
+
+    def coverage(self, X_mm: FloatArray, Y_mm: FloatArray, edge_mm: float) -> FloatArray:
+        """Fraction of paint (0..1) at material points (X, Y), mm: 1 inside a mark, 0 outside,
+        a linear ramp `edge_mm` wide across its outline (`edge_mm` > 0)."""
+        cover = np.zeros(np.broadcast(X_mm, Y_mm).shape)
+        for centre in self.centres_y_mm:
+            if self.kind == "dots":
+                distance = np.hypot(X_mm, Y_mm - centre)
+            else:
+                distance = np.abs(Y_mm - centre) + 0.0 * X_mm
+            inside = np.clip(0.5 + (self.size_mm - distance) / edge_mm, 0.0, 1.0)
+            cover = np.maximum(cover, inside)
+        return cover
+
+    def paint(self, texture: FloatArray, origin_mm: tuple[float, float], texel_mm: float) -> None:
+        """Paint the marks into `texture` (rows = material Y, columns = X; texel (0, 0) at
+        material `origin_mm`), in place."""
+        edge = self.edge_mm if self.edge_mm > 0 else 2.0 * texel_mm
+        rows, columns = texture.shape
+        X = origin_mm[0] + np.arange(columns) * texel_mm
+        Y = origin_mm[1] + np.arange(rows) * texel_mm
+        cover = self.coverage(X[np.newaxis, :], Y[:, np.newaxis], edge)
+        texture += cover * (self.level - texture)
+
+
 @numba.njit(parallel=True, cache=True)
 def add_time_sample(
     out: FloatArray,
@@ -202,6 +258,7 @@ class SpecimenScene:
             `AxialDeformation.half_width_mm` the deformation will report).
         centre_mm: object-plane point (x, y), mm, imaged at the sensor centre.
         coat: the speckle coat; None = a dense coat of 2 px radius at this scale.
+        marks: marks painted over the coat; None = none.
         background: grey level of the backdrop around the specimen, 8-bit scale.
         oversample: texels per pixel along each axis (texel size = scale / oversample).
         max_time_samples: largest number of time samples per exposure (>= 1).
@@ -213,6 +270,7 @@ class SpecimenScene:
         scale_mm_per_px: object-plane pixel size, mm/px.
         centre_mm: object point at the sensor centre, mm.
         coat: the speckle coat in force.
+        marks: the painted marks (None: none).
         background: backdrop grey level.
         texel_mm: texture sampling step, mm.
         texture_shape: (rows, columns) of the texture, texels.
@@ -231,6 +289,7 @@ class SpecimenScene:
         half_width_mm: float,
         centre_mm: tuple[float, float] = (0.0, 0.0),
         coat: SpeckleCoat | None = None,
+        marks: PaintedMarks | None = None,
         background: float = 20.0,
         oversample: int = TEXTURE_OVERSAMPLE,
         max_time_samples: int = 64,
@@ -255,6 +314,7 @@ class SpecimenScene:
         self.sensor_height = int(sensor_height)
         self.centre_mm = (float(centre_mm[0]), float(centre_mm[1]))
         self.coat = coat if coat is not None else SpeckleCoat(radius_mm=2.0 * scale_mm_per_px)
+        self.marks = marks
         self.background = float(background)
         self.max_time_samples = int(max_time_samples)
         self.max_sample_step_px = float(max_sample_step_px)
@@ -270,6 +330,8 @@ class SpecimenScene:
         self.texture_shape = (rows, columns)
         self.texture_origin_mm = (-0.5 * (columns - 1) * self.texel_mm, y_min - pad_mm)
         texture = render(self.coat.pattern(columns, rows, self.texel_mm), rows, columns)
+        if marks is not None:
+            marks.paint(texture, self.texture_origin_mm, self.texel_mm)
         self._coefficients = np.ascontiguousarray(spline_coefficients(texture), np.float32)
         self._last_exposure: tuple[float, float, list[float], list[AxialDeformation]] | None = None
 
@@ -298,7 +360,8 @@ class SpecimenScene:
         return (X - X0) / self.texel_mm, (Y - Y0) / self.texel_mm
 
     def coat_intensity(self, X_mm: npt.ArrayLike, Y_mm: npt.ArrayLike) -> FloatArray:
-        """Exact grey level of the coat at material points (X, Y), mm (analytic pattern)."""
+        """Exact grey level of the speckle coat at material points (X, Y), mm (analytic pattern;
+        painted marks not included)."""
         tx, ty = self.texture_coordinates(X_mm, Y_mm)
         return self.pattern.intensity(tx, ty)
 

@@ -49,7 +49,7 @@ from appliance.sim.crosshead import Crosshead
 from appliance.sim.lens import BenchGeometry
 from appliance.sim.machine import MachineWithSpecimen
 from appliance.sim.materials import ElasticPlastic, MooneyRivlin
-from appliance.sim.scene import TEXTURE_OVERSAMPLE, SpecimenScene, SpeckleCoat
+from appliance.sim.scene import TEXTURE_OVERSAMPLE, PaintedMarks, SpecimenScene, SpeckleCoat
 from appliance.sim.specimen import Specimen
 from appliance.sim.trigger import SimTriggerController
 from hal.camera.base import Frame
@@ -62,6 +62,9 @@ MAX_TEXTURE_PIXELS = 100e6
 """The largest specimen texture the simulator renders (px; the metal preset's is 5.2e6)."""
 MIN_SPECKLE_RADIUS_PX = 0.5
 """The smallest speckle the simulator paints, in pixels of the image (the presets' are 2 px)."""
+PAINTED_MARK_SIZE_FRACTION = 1.0 / 6.0
+"""Radius of a painted dot (half-width of a painted line), as a fraction of the specimen's
+parallel width (1 mm on the rubber preset's 6 mm)."""
 MAX_TEST_DURATION_S = 24 * 3600.0
 """The longest simulated test: to its end strain (or the break) at the configured speed."""
 
@@ -130,6 +133,9 @@ class SimWorld:
         speed_changes: the simulated controller's speed program after the start: (seconds
             after the start, mm/min), in increasing time.
         bench: the bench's error sources (`appliance.sim.bench`); None = the ideal bench.
+        painted_marks: "none", or "dots" / "lines" painted over the speckle at the ends of the
+            specimen's gauge length (`appliance.sim.scene.PaintedMarks`, white paint, radius
+            or half-width `PAINTED_MARK_SIZE_FRACTION` of the parallel width).
 
     Attributes:
         bench: the bench's error sources in force.
@@ -156,6 +162,7 @@ class SimWorld:
         encoder_counts_per_mm: float = 1000.0,
         speed_changes: tuple[tuple[float, float], ...] = (),
         bench: BenchErrors | None = None,
+        painted_marks: str = "none",
     ) -> None:
         self.preset = preset
         self.specimen = preset.specimen()
@@ -201,6 +208,13 @@ class SimWorld:
             "material_y_range_mm": (-0.5 * length, 0.5 * length),
             "half_width_mm": 0.5 * self.specimen.end_width_mm,
             "coat": SpeckleCoat(radius_mm=preset.speckle_radius_mm, seed=seed),
+            "marks": None
+            if painted_marks == "none"
+            else PaintedMarks(
+                painted_marks,  # type: ignore[arg-type]
+                (-half_gauge, half_gauge),
+                PAINTED_MARK_SIZE_FRACTION * self.specimen.parallel_width_mm,
+            ),
         }
         self.scene: SpecimenScene
         if self.bench.is_ideal:
@@ -298,6 +312,7 @@ class SimWorld:
                 else ()
             ),
             bench=bench,
+            painted_marks=config.sim.painted_marks,
         )
         duration_s = world.planned_duration_s
         if duration_s > MAX_TEST_DURATION_S:

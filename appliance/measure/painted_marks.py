@@ -1,0 +1,345 @@
+"""Painted dots: two contrasting dots on the specimen, found, validated and followed.
+
+Classic video extensometry measures between two marks painted on the specimen; unlike speckle
+correlation they survive strains at which the speckle decorrelates (rubber to several hundred
+percent). Here a *dot* is a connected blob of the frame, smoothed by a Gaussian of
+`DotSettings.smoothing_sigma_px`, above a threshold; its position is the intensity-weighted
+centroid of the raw pixels of the blob grown by one pixel (weights from 0 at the threshold to
+1 at the dot's paint level), sub-pixel. Its shape is the ellipse of the same second moments:
+a round dot becomes an ellipse as the material stretches, and its centroid stays on the
+material point at its centre while the deformation across the dot is uniform.
+
+Finding (`find_dots`, on the reference frame): the threshold is half-way between the paint
+(the brightest blobs: the 99.999th percentile of the smoothed frame) and the specimen around
+it (the 99th percentile); a candidate is a blob of at least `min_area_px` whose area fills
+its moment ellipse (`fill_range`). Exactly two candidates must be found: fewer ("missing") or
+more ("doubled") is refused by `PaintedMarksNotFound`, naming what was seen.
+
+Following (`PaintedDotTracker`, the interface of `appliance.measure.tracking.MarkTracker`):
+each dot is searched in a window around its predicted position (constant velocity), at the
+reference's threshold, and validated again every frame: the blob nearest the prediction must
+lie within the window (a blob cut by the window or by the image's side has left the view or
+merged with something larger), within `search_radius_px` of the prediction, fill its ellipse,
+keep its area within `area_change` of the last frame's, and keep at least `min_contrast` of
+its reference contrast against the ring around it. A dot that fails any of these is LOST in
+that frame (its predicted position is reported and the sample is not valid): never guessed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from appliance.measure.tracking import ReadRegion, TrackedFrame, TrackerSettings, TrackStatus
+
+_TRACKED = int(TrackStatus.TRACKED)
+_LOST = int(TrackStatus.LOST)
+
+
+@dataclass(frozen=True)
+class DotSettings:
+    """How dots are found and validated; lengths in px of the image.
+
+    Attributes:
+        smoothing_sigma_px: Gaussian smoothing before the threshold (keeps single bright
+            speckles out of the blobs).
+        min_area_px: smallest blob taken for a dot, px^2.
+        fill_range: (lowest, highest) ratio of a blob's area to the area of its moment
+            ellipse: 1 for a filled ellipse; a dot merged with a reflection or a speckle
+            blob falls outside.
+        area_change: largest relative change of a dot's area from one frame to the next.
+        min_contrast: smallest contrast against the ring around the dot, as a fraction of
+            the reference's.
+        window_margin_px: room around the dot's extent and the search radius in a window.
+        ring_px: width of the ring around a dot whose mean is the dot's surround.
+    """
+
+    smoothing_sigma_px: float = 2.0
+    min_area_px: float = 30.0
+    fill_range: tuple[float, float] = (0.8, 1.2)
+    area_change: float = 0.35
+    min_contrast: float = 0.5
+    window_margin_px: int = 6
+    ring_px: int = 3
+
+
+class PaintedMarksNotFound(ValueError):
+    """The reference frame does not hold exactly two painted dots; the message says what
+    was seen."""
+
+
+@dataclass(frozen=True)
+class Dot:
+    """One blob measured in a frame.
+
+    Attributes:
+        centre_px: intensity-weighted centroid (x, y), px.
+        area_px: pixels of the blob.
+        axes_px: (major, minor) full axes of its moment ellipse, px.
+        fill: area / the moment ellipse's area.
+        level: mean grey of the blob's raw pixels.
+        surround: mean grey of the ring around it.
+        cut: the blob reaches the side of the searched window (or the image).
+    """
+
+    centre_px: tuple[float, float]
+    area_px: float
+    axes_px: tuple[float, float]
+    fill: float
+    level: float
+    surround: float
+    cut: bool
+
+    @property
+    def contrast(self) -> float:
+        """Paint against surround, grey levels."""
+        return self.level - self.surround
+
+    def describe(self) -> str:
+        """ "(x, y) px, area N px" for messages."""
+        x, y = self.centre_px
+        return f"({x:.0f}, {y:.0f}) px, {self.area_px:.0f} px^2"
+
+
+def dot_threshold(image: np.ndarray, settings: DotSettings | None = None) -> float:
+    """The grey level half-way between the brightest blobs of `image` and the specimen around
+    them (see the module docstring)."""
+    s = settings or DotSettings()
+    smoothed = ndimage.gaussian_filter(np.asarray(image, np.float64), s.smoothing_sigma_px)
+    paint, specimen = np.percentile(smoothed, [99.999, 99.0])
+    return float(0.5 * (paint + specimen))
+
+
+def measure_blobs(
+    window: np.ndarray, threshold: float, settings: DotSettings | None = None
+) -> list[Dot]:
+    """Every blob of `window` above `threshold` (after smoothing) of at least `min_area_px`,
+    in the window's pixel coordinates."""
+    s = settings or DotSettings()
+    raw = np.asarray(window, np.float64)
+    smoothed = ndimage.gaussian_filter(raw, s.smoothing_sigma_px)
+    labels, count = ndimage.label(smoothed > threshold)
+    if count == 0:
+        return []
+    areas = ndimage.sum_labels(np.ones_like(raw), labels, np.arange(1, count + 1))
+    objects = ndimage.find_objects(labels)
+    return [
+        _measure_blob(raw, labels, int(label), objects[label - 1], threshold, s)
+        for label in np.flatnonzero(areas >= s.min_area_px) + 1
+    ]
+
+
+def _measure_blob(
+    raw: np.ndarray,
+    labels: np.ndarray,
+    label: int,
+    box: tuple[slice, slice],
+    threshold: float,
+    s: DotSettings,
+) -> Dot:
+    rows, cols = box
+    pad = 1 + s.ring_px
+    r0, r1 = max(rows.start - pad, 0), min(rows.stop + pad, raw.shape[0])
+    c0, c1 = max(cols.start - pad, 0), min(cols.stop + pad, raw.shape[1])
+    blob = labels[r0:r1, c0:c1] == label
+    pixels = raw[r0:r1, c0:c1]
+    grown = ndimage.binary_dilation(blob)
+    ring = ndimage.binary_dilation(grown, iterations=s.ring_px) & ~grown
+    level = float(pixels[blob].mean())
+    surround = float(pixels[ring].mean()) if ring.any() else math.nan
+    weights = np.clip((pixels - threshold) / max(level - threshold, 1e-9), 0.0, 1.0) * grown
+    total = weights.sum()
+    yy, xx = np.mgrid[r0:r1, c0:c1]
+    cx = float((weights * xx).sum() / total)
+    cy = float((weights * yy).sum() / total)
+    by, bx = np.nonzero(blob)
+    area = float(by.size)
+    dx, dy = bx + c0 - bx.mean() - c0, by + r0 - by.mean() - r0
+    cov = np.array([[np.mean(dx * dx), np.mean(dx * dy)], [np.mean(dx * dy), np.mean(dy * dy)]])
+    cov += np.eye(2) / 12.0
+    low, high = np.linalg.eigvalsh(cov)
+    axes = (4.0 * math.sqrt(max(high, 0.0)), 4.0 * math.sqrt(max(low, 0.0)))
+    ellipse = math.pi * axes[0] * axes[1] / 4.0
+    cut = (
+        rows.start == 0 or cols.start == 0 or rows.stop == raw.shape[0] or cols.stop == raw.shape[1]
+    )
+    return Dot(
+        (cx, cy), area, axes, area / ellipse if ellipse > 0 else math.inf, level, surround, cut
+    )
+
+
+def find_dots(image: np.ndarray, settings: DotSettings | None = None) -> tuple[Dot, Dot]:
+    """The two painted dots of a reference frame, in order of their row (then column).
+
+    Raises:
+        PaintedMarksNotFound: fewer or more than two candidates (the message names them).
+    """
+    s = settings or DotSettings()
+    threshold = dot_threshold(image, s)
+    blobs = measure_blobs(image, threshold, s)
+    low, high = s.fill_range
+    dots = [b for b in blobs if low <= b.fill <= high and not b.cut]
+    dots.sort(key=lambda d: (d.centre_px[1], d.centre_px[0]))
+    if len(dots) == 2:
+        return dots[0], dots[1]
+    seen = "; ".join(d.describe() for d in dots[:5]) + (" ..." if len(dots) > 5 else "")
+    others = len(blobs) - len(dots)
+    rejected = f" ({others} other bright blob(s) not dot-shaped)" if others else ""
+    if not dots:
+        raise PaintedMarksNotFound(
+            f"no painted dot found above grey {threshold:.0f}{rejected}: two are needed"
+        )
+    kind = "missing" if len(dots) < 2 else "doubled"
+    raise PaintedMarksNotFound(
+        f"painted dots {kind}: {len(dots)} found above grey {threshold:.0f} at {seen}"
+        f"{rejected}; exactly two are needed"
+    )
+
+
+class _FollowedDot:
+    def __init__(self, dot: Dot) -> None:
+        self.position = np.array(dot.centre_px)
+        self.reference_contrast = dot.contrast
+        self.last = dot
+        self.velocity = np.zeros(2)
+        self.last_time: float | None = None
+
+
+class PaintedDotTracker:
+    """Follows two painted dots from frame to frame (see the module docstring).
+
+    Args:
+        reference: the reference frame (2-D grey array).
+        points: (2, 2) positions (x, y) of the dots in it, px (from `find_dots`).
+        marks: the gauge's marks, one point each: ((0,), (1,)).
+        settings: the tracking settings (`search_radius_px` is the search radius).
+        dots: how dots are found and validated.
+
+    Raises:
+        PaintedMarksNotFound: no dot in the reference at a given point.
+
+    Use: `track(image, time_s, exposure_s)` for every frame in order; the result is an
+    `appliance.measure.tracking.TrackedFrame` (ZNCC NaN, gradients zero: no correlation).
+    """
+
+    def __init__(
+        self,
+        reference: np.ndarray,
+        points: np.ndarray,
+        marks: Sequence[Sequence[int]],
+        settings: TrackerSettings | None = None,
+        dots: DotSettings | None = None,
+    ) -> None:
+        self.settings = settings or TrackerSettings()
+        self.dot_settings = dots or DotSettings()
+        points = np.asarray(points, np.float64)
+        if points.shape != (2, 2) or sorted(tuple(m) for m in marks) != [(0,), (1,)]:
+            raise ValueError("painted dots: two points, one mark each")
+        self.n = 2
+        self.reference_updates = 0
+        self.threshold = dot_threshold(reference, self.dot_settings)
+        self._dots = []
+        for point in points:
+            dot = self._find_near(np.asarray(reference), point, None)
+            if dot is None:
+                raise PaintedMarksNotFound(
+                    f"no painted dot at ({point[0]:.0f}, {point[1]:.0f}) px of the reference"
+                )
+            self._dots.append(_FollowedDot(dot))
+        self.positions = np.array([d.position for d in self._dots])
+
+    @property
+    def subsets(self) -> list[int]:
+        """Current window of every dot, px (the larger side), for display."""
+        return [int(max(d.last.axes_px)) for d in self._dots]
+
+    def track(self, image: np.ndarray, time_s: float, exposure_s: float = 0.0) -> TrackedFrame:
+        """Measure both dots in the next frame (`exposure_s` is not used)."""
+        image = np.asarray(image)
+        positions = np.empty((2, 2))
+        status = np.full(2, _LOST, dtype=np.int8)
+        regions = []
+        for k, followed in enumerate(self._dots):
+            dt = None if followed.last_time is None else time_s - followed.last_time
+            predicted = followed.position + (followed.velocity * dt if dt else 0.0)
+            region = self._window(image.shape, predicted, followed.last)
+            regions.append(region)
+            dot = self._find_near(image, predicted, followed, region)
+            if dot is None:
+                positions[k] = predicted
+                continue
+            found = np.array(dot.centre_px)
+            if dt:
+                followed.velocity = (found - followed.position) / dt
+            followed.position = found
+            followed.last = dot
+            followed.last_time = time_s
+            positions[k] = found
+            status[k] = _TRACKED
+        self.positions = positions
+        return TrackedFrame(
+            positions,
+            status,
+            np.full(2, np.nan),
+            np.zeros((2, 4)),
+            0,
+            int(np.count_nonzero(status == _LOST)),
+            tuple(regions),
+        )
+
+    def _window(self, shape: tuple[int, ...], centre: np.ndarray, last: Dot) -> ReadRegion:
+        s = self.dot_settings
+        reach = 0.5 * last.axes_px[0] + self.settings.search_radius_px + s.window_margin_px
+        reach += s.ring_px + 3.0 * s.smoothing_sigma_px
+        x0 = max(int(math.floor(centre[0] - reach)), 0)
+        y0 = max(int(math.floor(centre[1] - reach)), 0)
+        x1 = min(int(math.ceil(centre[0] + reach)), shape[1] - 1)
+        y1 = min(int(math.ceil(centre[1] + reach)), shape[0] - 1)
+        return ReadRegion(x0, y0, max(x1 - x0 + 1, 1), max(y1 - y0 + 1, 1))
+
+    def _find_near(
+        self,
+        image: np.ndarray,
+        predicted: np.ndarray,
+        followed: _FollowedDot | None,
+        region: ReadRegion | None = None,
+    ) -> Dot | None:
+        """The valid dot nearest `predicted`, or None. Without `followed` (the reference),
+        only the shape is checked, in a window sized for the reference's dots."""
+        s = self.dot_settings
+        if region is None:
+            reach = 4 * self.settings.search_radius_px + 8 * s.window_margin_px
+            probe = Dot(tuple(predicted), 0.0, (2.0 * reach, 0.0), 1.0, 0.0, 0.0, False)
+            region = self._window(image.shape, predicted, probe)
+        window = image[region.y : region.y + region.height, region.x : region.x + region.width]
+        offset = np.array([region.x, region.y], np.float64)
+        blobs = measure_blobs(window, self.threshold, s)
+        if not blobs:
+            return None
+        distances = [np.hypot(*(np.array(b.centre_px) + offset - predicted)) for b in blobs]
+        nearest = blobs[int(np.argmin(distances))]
+        low, high = s.fill_range
+        if nearest.cut or not low <= nearest.fill <= high:
+            return None
+        if followed is not None:
+            if min(distances) > self.settings.search_radius_px + 1.0:
+                return None
+            ratio = nearest.area_px / followed.last.area_px
+            if not 1.0 / (1.0 + s.area_change) <= ratio <= 1.0 + s.area_change:
+                return None
+            if not nearest.contrast >= s.min_contrast * followed.reference_contrast:
+                return None
+        x, y = np.array(nearest.centre_px) + offset
+        return Dot(
+            (float(x), float(y)),
+            nearest.area_px,
+            nearest.axes_px,
+            nearest.fill,
+            nearest.level,
+            nearest.surround,
+            nearest.cut,
+        )
