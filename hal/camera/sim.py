@@ -33,9 +33,11 @@ readout time limiting the frame rate.
 from __future__ import annotations
 
 import collections
+import concurrent.futures
 import dataclasses
 import math
 import threading
+from collections.abc import Sequence
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -95,7 +97,10 @@ class SimCamera:
         self.url = url
         self._scene = scene
         self._clock = clock
-        self._rng = np.random.default_rng(seed)
+        self._noise_streams = [
+            np.random.default_rng(child)
+            for child in np.random.SeedSequence(seed).spawn(NOISE_BANDS)
+        ]
         self._read_noise = read_noise
         self._electrons_per_grey = electrons_per_grey
         self._settings = CameraSettings(exposure_us=1000.0)
@@ -242,7 +247,7 @@ class SimCamera:
     def _digitise(self, signal: np.ndarray) -> np.ndarray:
         return digitise(
             signal,
-            self._rng,
+            self._noise_streams,
             gain_db=self._settings.gain_db,
             electrons_per_grey=self._electrons_per_grey,
             read_noise_grey=self._read_noise,
@@ -252,7 +257,7 @@ class SimCamera:
 
 def digitise(
     signal: np.ndarray,
-    rng: np.random.Generator,
+    noise_streams: Sequence[np.random.Generator],
     *,
     gain_db: float,
     electrons_per_grey: float,
@@ -269,9 +274,45 @@ def digitise(
     (1/sqrt(electrons), 0.16 at one grey level of 40 electrons) is left out, far below a
     quantisation step. The result is rounded to the pixel format's counts and clipped.
 
+    The rows are cut into one band per generator of `noise_streams`, each band drawn from its
+    own generator on a thread of its own: the frame is the same whatever the number of cores.
+
     Returns:
         the frame's pixels: uint8 for Mono8, uint16 otherwise.
     """
+    signal = np.asarray(signal)
+    pixels = np.empty(
+        signal.shape, dtype=np.uint8 if pixel_format is PixelFormat.MONO8 else np.uint16
+    )
+    edges = np.linspace(0, signal.shape[0], len(noise_streams) + 1).astype(int)
+    bands = [
+        (signal[first:last], pixels[first:last], stream)
+        for first, last, stream in zip(edges[:-1], edges[1:], noise_streams, strict=True)
+    ]
+    noise = dict(
+        gain_db=gain_db,
+        electrons_per_grey=electrons_per_grey,
+        read_noise_grey=read_noise_grey,
+        pixel_format=pixel_format,
+    )
+    if len(bands) == 1:
+        _digitise_band(*bands[0], **noise)
+    else:
+        for done in [_band_pool().submit(_digitise_band, *band, **noise) for band in bands]:
+            done.result()
+    return pixels
+
+
+def _digitise_band(
+    signal: np.ndarray,
+    pixels: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    gain_db: float,
+    electrons_per_grey: float,
+    read_noise_grey: float,
+    pixel_format: PixelFormat,
+) -> None:
     gain = np.float32(10.0 ** (gain_db / 20.0))
     grey = np.multiply(signal, gain, dtype=np.float32)
     variance = np.full(grey.shape, np.float32(read_noise_grey) ** 2, dtype=np.float32)
@@ -286,4 +327,20 @@ def digitise(
     grey *= np.float32((pixel_format.max_value + 1) / 256.0)
     np.rint(grey, out=grey)
     np.clip(grey, 0, pixel_format.max_value, out=grey)
-    return grey.astype(np.uint8 if pixel_format is PixelFormat.MONO8 else np.uint16)
+    pixels[...] = grey
+
+
+NOISE_BANDS = 2
+"""Bands of rows a simulated camera draws its noise in, each from its own generator."""
+
+_BAND_POOL: list[concurrent.futures.ThreadPoolExecutor] = []
+_BAND_POOL_LOCK = threading.Lock()
+
+
+def _band_pool() -> concurrent.futures.ThreadPoolExecutor:
+    with _BAND_POOL_LOCK:
+        if not _BAND_POOL:
+            _BAND_POOL.append(
+                concurrent.futures.ThreadPoolExecutor(NOISE_BANDS, thread_name_prefix="sim-noise")
+            )
+        return _BAND_POOL[0]

@@ -144,7 +144,7 @@ def test_shot_and_read_noise_have_the_model_mean_and_variance():
         gain = 10.0 ** (gain_db / 20.0)
         counts = digitise(
             signal,
-            rng,
+            [rng, np.random.default_rng(4)],
             gain_db=gain_db,
             electrons_per_grey=40.0,
             read_noise_grey=0.5,
@@ -163,8 +163,8 @@ def test_digitised_pixels_clip_at_the_format_limits():
     signal = np.array([[-5.0, 0.0, 300.0, 255.0]], dtype=np.float32)
     rng = np.random.default_rng(0)
     common = {"gain_db": 0.0, "electrons_per_grey": 0.0, "read_noise_grey": 0.0}
-    mono8 = digitise(signal, rng, pixel_format=PixelFormat.MONO8, **common)
-    mono16 = digitise(signal, rng, pixel_format=PixelFormat.MONO16, **common)
+    mono8 = digitise(signal, [rng], pixel_format=PixelFormat.MONO8, **common)
+    mono16 = digitise(signal, [rng], pixel_format=PixelFormat.MONO16, **common)
     assert mono8.dtype == np.uint8 and mono8.tolist() == [[0, 0, 255, 255]]
     assert mono16.dtype == np.uint16 and mono16.tolist() == [[0, 0, 65535, 65280]]
 
