@@ -730,7 +730,8 @@ class AravisCamera:
 
     @_short_traceback
     def fetch(self, timeout_s: float) -> Frame:
-        """Next complete frame. Returns within `timeout_s` (plus a few ms) in every case.
+        """Next complete frame. Returns within `timeout_s` (plus a few ms) in every case; a
+        frame already waiting when the time is up (this thread was held up) is still taken.
 
         Raises HardwareTimeout when none arrives in time (or all `frames` were delivered),
         HardwareConnectError while the camera is lost or reconnecting (see the module
@@ -756,10 +757,13 @@ class AravisCamera:
                 del session
                 raise error
             remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                del stream
-                raise HardwareTimeout(f"{self.url}: no frame within {timeout_s:g} s")
-            buffer = stream.timeout_pop_buffer(max(1, int(min(remaining, POLL_S) * 1e6)))
+            if remaining > 0:
+                buffer = stream.timeout_pop_buffer(max(1, int(min(remaining, POLL_S) * 1e6)))
+            else:
+                buffer = stream.try_pop_buffer()
+                if buffer is None:
+                    del stream
+                    raise HardwareTimeout(f"{self.url}: no frame within {timeout_s:g} s")
             if buffer is None:
                 continue
             with _lease(stream, buffer):
