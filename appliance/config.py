@@ -154,10 +154,10 @@ class GaugeConfig:
     are centred on (`centre_x_px`, `centre_y_px`) of the reference image along a loading axis
     `axis_deg` degrees from the image's +x towards +y (90 = vertical specimen) when both are
     given; left out, on the parallel length of the specimen detected in the reference image,
-    along its axis (`appliance.rig`). `marks = "dots"` measures between two dots painted on
-    the specimen instead of the speckle (`appliance.measure.painted_marks`): found in the
-    reference image, they are the gauge, and `length_mm`, the centre and the points are not
-    used.
+    along its axis (`appliance.rig`). `marks = "dots"` (or `"lines"`) measures between two
+    dots (lines across the specimen) painted on it instead of the speckle
+    (`appliance.measure.painted_marks`): found in the reference image, they are the gauge, and
+    `length_mm`, the centre and the points are not used.
     """
 
     length_mm: float | None = field(default=None, metadata=_range(0.1, 10000.0))
@@ -167,7 +167,7 @@ class GaugeConfig:
     centre_x_px: float | None = field(default=None, metadata=_range(0.0, 65535.0))
     centre_y_px: float | None = field(default=None, metadata=_range(0.0, 65535.0))
     axis_deg: float = field(default=90.0, metadata=_range(-180.0, 180.0))
-    marks: str = field(default="speckle", metadata={"choices": ("speckle", "dots")})
+    marks: str = field(default="speckle", metadata={"choices": ("speckle", "dots", "lines")})
 
 
 @dataclass(frozen=True)

@@ -57,7 +57,7 @@ from appliance.measure.gauges import (
     place_marks,
 )
 from appliance.measure.image_quality import speckle_problem
-from appliance.measure.painted_marks import PaintedMarksNotFound, find_dots
+from appliance.measure.painted_marks import DotSettings, PaintedMarksNotFound, find_dots
 from appliance.measure.specimen_gauge import GaugeCentre, marks_beyond_parallel_length
 from appliance.measure.tracking import MarkTracker, warm_up_kernels
 from appliance.plan.exposure import ExposurePlan, exposure_for
@@ -405,8 +405,8 @@ class _Reference:
         config, rig = self.config, self.rig
         g = config.gauge
         check_image_size(self.calibration, reference.image.shape[1], reference.image.shape[0])
-        if g.marks == "dots":
-            points, layout, centre = _painted_dots(reference.image, config)
+        if g.marks in ("dots", "lines"):
+            points, layout, centre = _painted_marks(reference.image, config)
         else:
             points, layout, centre = self._placed_marks(reference)
         if rig.world is not None:
@@ -467,27 +467,29 @@ class _Reference:
         return points, layout, centre
 
 
-def _painted_dots(
+def _painted_marks(
     image: np.ndarray, config: Config
 ) -> tuple[np.ndarray, StrainGaugesLayout, GaugeCentre]:
-    """The gauge between the two painted dots of the reference frame (`[gauge] marks =
-    "dots"`): their centroids, one point per mark, and the centre and axis they define.
+    """The gauge between the two painted dots or lines of the reference frame (`[gauge] marks`
+    "dots" or "lines"): their positions, one point per mark, and the centre and axis they
+    define.
 
     Raises:
-        InputError: not exactly two dots (naming what was seen), or a transverse gauge asked.
+        InputError: not exactly two marks (naming what was seen), or a transverse gauge asked.
     """
+    kind = config.gauge.marks
     if config.gauge.transverse_width_mm:
         raise InputError(
-            '[gauge] transverse_width_mm: no transverse gauge with [gauge] marks = "dots"'
+            f'[gauge] transverse_width_mm: no transverse gauge with [gauge] marks = "{kind}"'
         )
     try:
-        first, second = find_dots(image)
+        first, second = find_dots(image, DotSettings(kind=kind))
     except PaintedMarksNotFound as exc:
-        raise InputError(f'reference frame: {exc} ([gauge] marks = "dots")') from None
+        raise InputError(f'reference frame: {exc} ([gauge] marks = "{kind}")') from None
     points = np.array([first.centre_px, second.centre_px])
     dx, dy = points[1] - points[0]
     axis_deg = float(np.degrees(np.arctan2(dy, dx)))
-    centre = GaugeCentre(tuple(points.mean(axis=0)), axis_deg, "painted dots")
+    centre = GaugeCentre(tuple(points.mean(axis=0)), axis_deg, f"painted {kind}")
     return points, StrainGaugesLayout(Gauge((0,), (1,)), None), centre
 
 

@@ -29,7 +29,7 @@ import numpy as np
 
 from appliance.measure.frame_windows import ImageWindow, cut_windows
 from appliance.measure.gauges import Calibration, StrainGauges, StrainGaugesLayout, StrainReading
-from appliance.measure.painted_marks import PaintedDotTracker
+from appliance.measure.painted_marks import DotSettings, PaintedDotTracker
 from appliance.measure.tracking import MarkTracker, TrackerSettings, TrackStatus
 from hal.camera.base import Frame
 from hal.machine.base import MachineState
@@ -285,11 +285,11 @@ def tracker_and_gauges(
 ) -> tuple[MarkTracker | PaintedDotTracker, StrainGauges]:
     """The tracker and the gauges of a test, on its reference image and placed points: what a
     `FrameMeasurer` measures with, live and in a replay. `marks` is `[gauge] marks`:
-    "speckle" (correlation) or "dots" (painted dots, one point each)."""
+    "speckle" (correlation), "dots" or "lines" (painted marks, one point each)."""
     image = np.asarray(reference, dtype=np.float64)
     tracker: MarkTracker | PaintedDotTracker
-    if marks == "dots":
-        tracker = PaintedDotTracker(image, points, layout.marks, settings)
+    if marks in ("dots", "lines"):
+        tracker = PaintedDotTracker(image, points, layout.marks, settings, DotSettings(kind=marks))
     else:
         tracker = MarkTracker(image, points, layout.marks, settings)
     gauges = StrainGauges(layout.axial, points, calibration, layout.transverse)

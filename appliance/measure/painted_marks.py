@@ -42,9 +42,11 @@ _LOST = int(TrackStatus.LOST)
 
 @dataclass(frozen=True)
 class DotSettings:
-    """How dots are found and validated; lengths in px of the image.
+    """How painted marks are found and validated; lengths in px of the image.
 
     Attributes:
+        kind: "dots", or "lines" painted across a specimen whose axis runs along the image's
+            rows (each line's position along the axis from its sub-pixel edge profile).
         smoothing_sigma_px: Gaussian smoothing before the threshold (keeps single bright
             speckles out of the blobs).
         min_area_px: smallest blob taken for a dot, px^2.
@@ -58,6 +60,7 @@ class DotSettings:
         ring_px: width of the ring around a dot whose mean is the dot's surround.
     """
 
+    kind: str = "dots"
     smoothing_sigma_px: float = 2.0
     min_area_px: float = 30.0
     fill_range: tuple[float, float] = (0.8, 1.2)
@@ -65,6 +68,10 @@ class DotSettings:
     min_contrast: float = 0.5
     window_margin_px: int = 6
     ring_px: int = 3
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("dots", "lines"):
+            raise ValueError(f"kind must be 'dots' or 'lines', got {self.kind!r}")
 
 
 class PaintedMarksNotFound(ValueError):
@@ -156,6 +163,8 @@ def _measure_blob(
     yy, xx = np.mgrid[r0:r1, c0:c1]
     cx = float((weights * xx).sum() / total)
     cy = float((weights * yy).sum() / total)
+    if s.kind == "lines":
+        cy = _line_row(raw, blob, (r0, c0), level, surround, cy)
     by, bx = np.nonzero(blob)
     area = float(by.size)
     dx, dy = bx + c0 - bx.mean() - c0, by + r0 - by.mean() - r0
@@ -172,8 +181,56 @@ def _measure_blob(
     )
 
 
+def _line_row(
+    raw: np.ndarray,
+    blob: np.ndarray,
+    origin: tuple[int, int],
+    level: float,
+    surround: float,
+    fallback: float,
+) -> float:
+    """The row of a line across the specimen: the midpoint of the two sub-pixel crossings of
+    the half level (between paint and surround) by the line's profile along the rows, the mean
+    of the blob's middle half of columns. `fallback` when the profile has no two crossings."""
+    r0, c0 = origin
+    columns = np.flatnonzero(blob.any(axis=0))
+    quarter = (columns[-1] - columns[0]) // 4
+    middle = slice(c0 + columns[0] + quarter, c0 + columns[-1] - quarter + 1)
+    profile = raw[:, middle].mean(axis=1)
+    rows = np.flatnonzero(blob[:, columns[0] + quarter : columns[-1] - quarter + 1].any(axis=1))
+    half = 0.5 * (level + surround)
+    top, bottom = r0 + rows[0], r0 + rows[-1]
+    if not (0 < top and bottom < raw.shape[0] - 1):
+        return fallback
+    upper = _crossing(profile, half, top, -1)
+    lower = _crossing(profile, half, bottom, 1)
+    if upper is None or lower is None:
+        return fallback
+    return 0.5 * (upper + lower)
+
+
+def _crossing(profile: np.ndarray, half: float, start: int, step: int) -> float | None:
+    """Where `profile` falls through `half` near row `start`, going outwards by `step`,
+    interpolated linearly between the last row at or above it and the next; None when that
+    is not within the profile."""
+    n = profile.size
+    row = start
+    if profile[row] < half:
+        while 0 <= row < n and profile[row] < half:
+            row -= step
+    else:
+        while 0 <= row + step < n and profile[row + step] >= half:
+            row += step
+    outside = row + step
+    if not (0 <= row < n and 0 <= outside < n):
+        return None
+    a, b = profile[row], profile[outside]
+    return row + step * (a - half) / (a - b)
+
+
 def find_dots(image: np.ndarray, settings: DotSettings | None = None) -> tuple[Dot, Dot]:
-    """The two painted dots of a reference frame, in order of their row (then column).
+    """The two painted dots (or lines, by `settings.kind`) of a reference frame, in order of
+    their row (then column).
 
     Raises:
         PaintedMarksNotFound: fewer or more than two candidates (the message names them).
@@ -186,16 +243,17 @@ def find_dots(image: np.ndarray, settings: DotSettings | None = None) -> tuple[D
     dots.sort(key=lambda d: (d.centre_px[1], d.centre_px[0]))
     if len(dots) == 2:
         return dots[0], dots[1]
+    one = s.kind[:-1]
     seen = "; ".join(d.describe() for d in dots[:5]) + (" ..." if len(dots) > 5 else "")
     others = len(blobs) - len(dots)
-    rejected = f" ({others} other bright blob(s) not dot-shaped)" if others else ""
+    rejected = f" ({others} other bright blob(s) not {one}-shaped)" if others else ""
     if not dots:
         raise PaintedMarksNotFound(
-            f"no painted dot found above grey {threshold:.0f}{rejected}: two are needed"
+            f"no painted {one} found above grey {threshold:.0f}{rejected}: two are needed"
         )
     kind = "missing" if len(dots) < 2 else "doubled"
     raise PaintedMarksNotFound(
-        f"painted dots {kind}: {len(dots)} found above grey {threshold:.0f} at {seen}"
+        f"painted {s.kind} {kind}: {len(dots)} found above grey {threshold:.0f} at {seen}"
         f"{rejected}; exactly two are needed"
     )
 
@@ -247,7 +305,8 @@ class PaintedDotTracker:
             dot = self._find_near(np.asarray(reference), point, None)
             if dot is None:
                 raise PaintedMarksNotFound(
-                    f"no painted dot at ({point[0]:.0f}, {point[1]:.0f}) px of the reference"
+                    f"no painted {self.dot_settings.kind[:-1]} at ({point[0]:.0f}, "
+                    f"{point[1]:.0f}) px of the reference"
                 )
             self._dots.append(_FollowedDot(dot))
         self.positions = np.array([d.position for d in self._dots])
