@@ -1,4 +1,4 @@
-"""Painted dots: two contrasting dots on the specimen, found, validated and followed.
+"""Painted marks: two contrasting dots (or lines) on the specimen, found, validated, followed.
 
 Classic video extensometry measures between two marks painted on the specimen; unlike speckle
 correlation they survive strains at which the speckle decorrelates (rubber to several hundred
@@ -11,9 +11,17 @@ material point at its centre while the deformation across the dot is uniform.
 
 Finding (`find_dots`, on the reference frame): the threshold is half-way between the paint
 (the brightest blobs: the 99.999th percentile of the smoothed frame) and the specimen around
-it (the 99th percentile); a candidate is a blob of at least `min_area_px` whose area fills
-its moment ellipse (`fill_range`). Exactly two candidates must be found: fewer ("missing") or
-more ("doubled") is refused by `PaintedMarksNotFound`, naming what was seen.
+it (the 99th percentile: the marks cover less than 1 % of the frame); a candidate is a blob
+of at least `min_area_px` whose area fills its moment ellipse (`fill_range`) and whose mean is
+nearer the paint than the threshold (a bright cluster of speckle is not). Exactly two
+candidates must be found: fewer ("missing") or more ("doubled") is refused by
+`PaintedMarksNotFound`, naming what was seen.
+
+Lines (`DotSettings.kind = "lines"`, painted across a specimen whose axis runs along the
+image's rows) are found and followed as the same blobs (a band fills its moment ellipse to
+0.95); a line's position along the axis is the midpoint of its two edges, each where the
+profile along the rows (the mean of the blob's middle half of columns) crosses half-way
+between the paint and the surround, interpolated to sub-pixel.
 
 Following (`PaintedDotTracker`, the interface of `appliance.measure.tracking.MarkTracker`):
 each dot is searched in a window around its predicted position (constant velocity), at the
@@ -62,7 +70,7 @@ class DotSettings:
 
     kind: str = "dots"
     smoothing_sigma_px: float = 2.0
-    min_area_px: float = 30.0
+    min_area_px: float = 60.0
     fill_range: tuple[float, float] = (0.8, 1.2)
     area_change: float = 0.35
     min_contrast: float = 0.5
@@ -112,13 +120,14 @@ class Dot:
         return f"({x:.0f}, {y:.0f}) px, {self.area_px:.0f} px^2"
 
 
-def dot_threshold(image: np.ndarray, settings: DotSettings | None = None) -> float:
-    """The grey level half-way between the brightest blobs of `image` and the specimen around
-    them (see the module docstring)."""
+def paint_levels(image: np.ndarray, settings: DotSettings | None = None) -> tuple[float, float]:
+    """(paint, threshold): the grey level of the brightest blobs of `image` (the 99.999th
+    percentile of the smoothed frame), and the level half-way between it and the specimen (its
+    99th percentile: the marks must cover less than 1 % of the frame)."""
     s = settings or DotSettings()
     smoothed = ndimage.gaussian_filter(np.asarray(image, np.float64), s.smoothing_sigma_px)
     paint, specimen = np.percentile(smoothed, [99.999, 99.0])
-    return float(0.5 * (paint + specimen))
+    return float(paint), float(0.5 * (paint + specimen))
 
 
 def measure_blobs(
@@ -236,17 +245,20 @@ def find_dots(image: np.ndarray, settings: DotSettings | None = None) -> tuple[D
         PaintedMarksNotFound: fewer or more than two candidates (the message names them).
     """
     s = settings or DotSettings()
-    threshold = dot_threshold(image, s)
+    paint, threshold = paint_levels(image, s)
     blobs = measure_blobs(image, threshold, s)
     low, high = s.fill_range
-    dots = [b for b in blobs if low <= b.fill <= high and not b.cut]
+    painted = 0.5 * (threshold + paint)
+    dots = [b for b in blobs if low <= b.fill <= high and not b.cut and b.level >= painted]
     dots.sort(key=lambda d: (d.centre_px[1], d.centre_px[0]))
     if len(dots) == 2:
         return dots[0], dots[1]
     one = s.kind[:-1]
     seen = "; ".join(d.describe() for d in dots[:5]) + (" ..." if len(dots) > 5 else "")
     others = len(blobs) - len(dots)
-    rejected = f" ({others} other bright blob(s) not {one}-shaped)" if others else ""
+    rejected = (
+        f" ({others} other bright blob(s) not {one}-shaped or not as bright)" if others else ""
+    )
     if not dots:
         raise PaintedMarksNotFound(
             f"no painted {one} found above grey {threshold:.0f}{rejected}: two are needed"
@@ -299,7 +311,7 @@ class PaintedDotTracker:
             raise ValueError("painted dots: two points, one mark each")
         self.n = 2
         self.reference_updates = 0
-        self.threshold = dot_threshold(reference, self.dot_settings)
+        self.threshold = paint_levels(reference, self.dot_settings)[1]
         self._dots = []
         for point in points:
             dot = self._find_near(np.asarray(reference), point, None)

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from appliance.measure.painted_marks import (
+    DotSettings,
     PaintedDotTracker,
     PaintedMarksNotFound,
     find_dots,
@@ -20,7 +21,7 @@ SPECKLE = 125.0
 PAINT = 245.0
 
 
-def _speckled(shape=(200, 120), seed=3):
+def _speckled(shape=(200, 300), seed=3):
     """A mid-grey speckle of 1-px grain and +-40 grey levels."""
     rng = np.random.default_rng(seed)
     return SPECKLE + rng.uniform(-40.0, 40.0, shape)
@@ -156,3 +157,50 @@ def test_the_tracker_reads_only_the_windows_it_reports():
         blanked[window] = moved[window]
     frame = again.track(blanked, 0.1)
     assert np.array_equal(frame.positions, expected.positions)
+
+
+def test_lines_rendered_by_the_simulator_are_found_at_their_true_rows():
+    world = SimWorld(PRESETS["rubber"], painted_marks="lines", seed=4)
+    scene = world.scene
+    image, _ = scene.render(0.0, 0.0, Region(0, 0, scene.sensor_width, scene.sensor_height))
+    image += np.random.default_rng(1).normal(0.0, 1.0, image.shape)
+    half = 0.5 * world.gauge_length_mm
+    truth = scene.image_positions(np.array([[0.0, -half], [0.0, half]]), 0.0, 0.0)
+    first, second = find_dots(image, DotSettings(kind="lines"))
+    rows = np.array([first.centre_px[1], second.centre_px[1]])
+    assert np.abs(rows - truth[:, 1]).max() < 0.25
+
+
+def test_a_line_is_placed_by_its_edges_and_followed_as_it_stretches():
+    def band(top, bottom, seed=3):
+        image = _speckled((200, 400), seed=seed)
+        rows = np.arange(image.shape[0])[:, np.newaxis]
+        cover = np.clip(np.minimum(rows + 0.5 - top, bottom - rows + 0.5), 0.0, 1.0)
+        cover = cover * (np.abs(np.arange(image.shape[1]) - 60) < 15)
+        image += cover * (PAINT - image)
+        return image
+
+    def two_bands(first, second):
+        image = band(*first)
+        lower = band(*second, seed=3)
+        image[100:] = lower[100:]
+        return image
+
+    lines = DotSettings(kind="lines")
+    reference = two_bands((40.3, 52.1), (140.6, 152.8))
+    first, second = find_dots(reference, lines)
+    assert first.centre_px[1] == pytest.approx(46.2, abs=0.1)
+    assert second.centre_px[1] == pytest.approx(146.7, abs=0.1)
+    tracker = PaintedDotTracker(
+        reference, [first.centre_px, second.centre_px], [(0,), (1,)], dots=lines
+    )
+    frame = tracker.track(two_bands((37.1, 51.3), (141.9, 156.2)), 0.1)
+    assert frame.marks_lost == 0
+    assert frame.positions[:, 1] == pytest.approx([44.2, 149.05], abs=0.1)
+
+
+def test_missing_lines_are_refused_naming_lines():
+    image = _speckled()
+    _paint_dot(image, (60.0, 50.0), radius=(25.0, 6.0))
+    with pytest.raises(PaintedMarksNotFound, match=r"^painted lines missing: 1 found"):
+        find_dots(image, DotSettings(kind="lines"))
