@@ -62,6 +62,8 @@ def spline_coefficients(image: np.ndarray, *, gaussian_sigma: float = 0.0) -> np
     Returns:
         float64 array (H + 2*PAD, W + 2*PAD). Coefficient of pixel (row r, col c) is at
         [r + PAD, c + PAD]; the border holds the mirror-symmetric continuation.
+
+    The compiled call releases the GIL: other threads run while an image is prepared.
     """
     if image.ndim != 2:
         raise ValueError(f"expected a 2-D grey image, got shape {image.shape}")
@@ -211,7 +213,7 @@ def _spline_rows(c, z_n_1):
                 c[r, i] = z * (c[r, i + 1] - c[r, i])
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _coefficients(src, weights, z_h, z_w, out):
     h, w = src.shape
     work = np.empty((h, w))

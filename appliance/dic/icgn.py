@@ -50,13 +50,11 @@ does).
 from __future__ import annotations
 
 import enum
-import math
 from dataclasses import dataclass
 
 import numba
 import numpy as np
 
-from appliance.dic import bspline
 from appliance.dic.bspline import (
     interpolate_line,
     interpolate_row_with_gradient,
@@ -523,28 +521,6 @@ def _refine_serial(
     )
 
 
-@numba.njit(cache=True, nogil=True)
-def _coefficients_without_gil(image, weights, z_h, z_w, out):
-    bspline._coefficients(image, weights, z_h, z_w, out)
-
-
-def _target_coefficients(image: np.ndarray, sigma: float) -> np.ndarray:
-    """`bspline.spline_coefficients(image, gaussian_sigma=sigma)`, bit for bit (its own
-    kernel), entered through a dispatcher that releases the GIL."""
-    height, width = image.shape
-    if image.size == 0:
-        raise ValueError(f"expected a non-empty image, got shape {image.shape}")
-    out = np.empty((height + 2 * bspline.PAD, width + 2 * bspline.PAD))
-    _coefficients_without_gil(
-        image,
-        bspline._gaussian_weights(float(sigma)),
-        math.pow(bspline._POLE, height - 1),
-        math.pow(bspline._POLE, width - 1),
-        out,
-    )
-    return out
-
-
 class ICGN:
     """Batched IC-GN subpixel refinement with a first-order shape function and ZNSSD.
 
@@ -699,7 +675,7 @@ class ICGN:
         image = np.asarray(target)
         if image.ndim != 2:
             raise ValueError(f"target must be a 2-D grey image, got shape {image.shape}")
-        coefficients = _target_coefficients(image, self.prefilter_sigma)
+        coefficients = spline_coefficients(image, gaussian_sigma=self.prefilter_sigma)
         coefficients.flags.writeable = False
         return PreparedTarget(
             coefficients=coefficients,
