@@ -1,7 +1,8 @@
 """A simulated rubber test measured between painted dots (`[gauge] marks = "dots"` on a world
 that paints them, `[sim] painted_marks = "dots"`): every sample valid to 200 %, the strain
-within its tolerance of the truth, the recording replayed bit for bit; and a reference frame
-without the dots refused in one line before the crosshead moves."""
+within its tolerance of the truth, the recording replayed bit for bit; painted lines likewise
+to 100 %; and a reference frame without the dots refused in one line before the crosshead
+moves."""
 
 from __future__ import annotations
 
@@ -81,3 +82,21 @@ def test_a_reference_frame_without_painted_dots_is_refused_before_the_start(tmp_
     assert "Traceback" not in done.stderr
     strain_file = tmp_path / "out" / "strain.csv"
     assert not strain_file.exists() or len(strain_file.read_text().splitlines()) <= 1
+
+
+def test_painted_lines_keep_every_sample_valid_and_follow_the_truth(tmp_path):
+    config = _config(tmp_path / "lines.toml", gauge_marks="lines", painted="lines")
+    out = tmp_path / "out"
+    done = cli(
+        "run", "--sim", "--config", str(config), "--until-strain", "1.0", "--out", str(out),
+        "--json",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(done.stdout)
+    assert summary["gauge_placement"] == "painted lines"
+    assert summary["lost_points"] == 0 and summary["invalid_samples"] == 0
+    with (out / "strain.csv").open() as f:
+        for row in csv.DictReader(f):
+            truth = float(row["truth_strain"])
+            error = abs(float(row["engineering_strain"]) - truth)
+            assert error <= max(0.005 * truth, 0.0015), row["index"]
