@@ -447,6 +447,21 @@ def _layout(
     return _Layout(cx, cy, x_lo, x_hi, y_lo, y_hi, valid)
 
 
+def _code_boxes(layout: _Layout, subset: int, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The boxes (row start, row stop, column start, column stop) whose LPQ codes the points
+    `idx` read: each one's target search window widened by half a subset, and its reference
+    subset."""
+    half = subset // 2
+    target = np.stack(
+        [layout.y_lo - half, layout.y_hi + half + 1, layout.x_lo - half, layout.x_hi + half + 1],
+        axis=1,
+    )[idx]
+    reference = np.stack(
+        [layout.cy - half, layout.cy + half + 1, layout.cx - half, layout.cx + half + 1], axis=1
+    )[idx]
+    return target, reference
+
+
 class _CodeSource:
     """LPQ codes of rectangles of one image, as if ``lpq_codes`` ran on the whole image.
 
@@ -632,18 +647,11 @@ def _lpq_cost_maps(
     weighting: tuple[np.ndarray, float],
 ) -> Iterator[tuple[int, np.ndarray, np.ndarray | None]]:
     """Yield ``(point index, chi-square map, winning pre-warp)`` for every valid point."""
-    half = subset // 2
     idx = np.flatnonzero(layout.valid)
     if idx.size == 0:
         return
-    tgt_boxes = np.stack(
-        [layout.y_lo - half, layout.y_hi + half + 1, layout.x_lo - half, layout.x_hi + half + 1],
-        axis=1,
-    )[idx]
+    tgt_boxes, ref_boxes = _code_boxes(layout, subset, idx)
     tgt_codes = _CodeSource(tgt, params, tgt_boxes)
-    ref_boxes = np.stack(
-        [layout.cy - half, layout.cy + half + 1, layout.cx - half, layout.cx + half + 1], axis=1
-    )[idx]
     ref_codes = _CodeSource(ref, params, ref_boxes) if warps is None else None
     ref32 = _to_float32(ref) if warps is not None else None
     size = subset + 2 * params.radius
@@ -793,17 +801,10 @@ def _lpq_all_points(
 ) -> None:
     """`lpq_search` without pre-warps: the codes gathered, then every point's map, winner and
     reliability in one compiled pass per batch of points, on numba's threads."""
-    half = subset // 2
     idx = np.flatnonzero(layout.valid)
     if idx.size == 0:
         return
-    tgt_boxes = np.stack(
-        [layout.y_lo - half, layout.y_hi + half + 1, layout.x_lo - half, layout.x_hi + half + 1],
-        axis=1,
-    )[idx]
-    ref_boxes = np.stack(
-        [layout.cy - half, layout.cy + half + 1, layout.cx - half, layout.cx + half + 1], axis=1
-    )[idx]
+    tgt_boxes, ref_boxes = _code_boxes(layout, subset, idx)
     tgt_codes = _CodeSource(tgt, params, tgt_boxes)
     ref_codes = _CodeSource(ref, params, ref_boxes)
     for start in range(0, idx.size, _LPQ_BATCH_POINTS):
