@@ -269,8 +269,9 @@ def digitise(
     Gain multiplies the signal; shot noise (Poisson in the electrons collected,
     `electrons_per_grey` per grey level at unit gain; 0 = none) and read noise (standard
     deviation `read_noise_grey`) are added as one Gaussian draw per pixel whose variance is
-    their sum, `gain * grey / electrons_per_grey + read_noise_grey**2`, in float32: the mean
-    and the variance of every pixel are the model's, and only the Poisson law's skew
+    their sum, `gain**2 * signal / electrons_per_grey + read_noise_grey**2` (the electrons'
+    Poisson variance amplified by the gain, as a sensor's analogue gain does), in float32: the
+    mean and the variance of every pixel are the model's, and only the Poisson law's skew
     (1/sqrt(electrons), 0.16 at one grey level of 40 electrons) is left out, far below a
     quantisation step. The result is rounded to the pixel format's counts and clipped.
 
