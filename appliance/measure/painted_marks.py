@@ -12,8 +12,9 @@ material point at its centre while the deformation across the dot is uniform.
 Finding (`find_dots`, on the reference frame): the threshold is half-way between the paint
 (the brightest blobs: the 99.999th percentile of the smoothed frame) and the specimen around
 it (the 99th percentile: the marks cover less than 1 % of the frame); a candidate is a blob
-of at least `min_area_px` whose area fills its moment ellipse (`fill_range`) and whose mean is
-nearer the paint than the threshold (a bright cluster of speckle is not). Exactly two
+of at least `min_area_px` whose area fills its moment ellipse (`fill_range`), whose mean is
+nearer the paint than the threshold, and whose core is uniform (`max_spread`: a bright cluster
+of speckle is neither). Exactly two
 candidates must be found: fewer ("missing") or more ("doubled") is refused by
 `PaintedMarksNotFound`, naming what was seen.
 
@@ -66,6 +67,8 @@ class DotSettings:
             the reference's.
         window_margin_px: room around the dot's extent and the search radius in a window.
         ring_px: width of the ring around a dot whose mean is the dot's surround.
+        max_spread: in the reference frame, the largest spread of a mark's core, as a
+            fraction of its contrast (paint is uniform, a bright cluster of speckle is not).
     """
 
     kind: str = "dots"
@@ -76,6 +79,7 @@ class DotSettings:
     min_contrast: float = 0.5
     window_margin_px: int = 6
     ring_px: int = 3
+    max_spread: float = 0.2
 
     def __post_init__(self) -> None:
         if self.kind not in ("dots", "lines"):
@@ -98,6 +102,8 @@ class Dot:
         fill: area / the moment ellipse's area.
         level: mean grey of the blob's raw pixels.
         surround: mean grey of the ring around it.
+        spread: standard deviation of the grey levels of its core (the blob less 2 px all
+            round; infinite when nothing is left): small for paint, large for speckle.
         cut: the blob reaches the side of the searched window (or the image).
     """
 
@@ -107,6 +113,7 @@ class Dot:
     fill: float
     level: float
     surround: float
+    spread: float
     cut: bool
 
     @property
@@ -174,6 +181,8 @@ def _measure_blob(
     cy = float((weights * yy).sum() / total)
     if s.kind == "lines":
         cy = _line_row(raw, blob, (r0, c0), level, surround, cy)
+    core = ndimage.binary_erosion(blob, iterations=2)
+    spread = float(pixels[core].std()) if core.any() else math.inf
     by, bx = np.nonzero(blob)
     area = float(by.size)
     dx, dy = bx + c0 - bx.mean() - c0, by + r0 - by.mean() - r0
@@ -185,9 +194,8 @@ def _measure_blob(
     cut = (
         rows.start == 0 or cols.start == 0 or rows.stop == raw.shape[0] or cols.stop == raw.shape[1]
     )
-    return Dot(
-        (cx, cy), area, axes, area / ellipse if ellipse > 0 else math.inf, level, surround, cut
-    )
+    fill = area / ellipse if ellipse > 0 else math.inf
+    return Dot((cx, cy), area, axes, fill, level, surround, spread, cut)
 
 
 def _line_row(
@@ -249,7 +257,14 @@ def find_dots(image: np.ndarray, settings: DotSettings | None = None) -> tuple[D
     blobs = measure_blobs(image, threshold, s)
     low, high = s.fill_range
     painted = 0.5 * (threshold + paint)
-    dots = [b for b in blobs if low <= b.fill <= high and not b.cut and b.level >= painted]
+    dots = [
+        b
+        for b in blobs
+        if low <= b.fill <= high
+        and not b.cut
+        and b.level >= painted
+        and b.spread <= s.max_spread * b.contrast
+    ]
     dots.sort(key=lambda d: (d.centre_px[1], d.centre_px[0]))
     if len(dots) == 2:
         return dots[0], dots[1]
@@ -257,7 +272,9 @@ def find_dots(image: np.ndarray, settings: DotSettings | None = None) -> tuple[D
     seen = "; ".join(d.describe() for d in dots[:5]) + (" ..." if len(dots) > 5 else "")
     others = len(blobs) - len(dots)
     rejected = (
-        f" ({others} other bright blob(s) not {one}-shaped or not as bright)" if others else ""
+        f" ({others} other bright blob(s) not {one}-shaped, not as bright or not uniform)"
+        if others
+        else ""
     )
     if not dots:
         raise PaintedMarksNotFound(
@@ -384,7 +401,7 @@ class PaintedDotTracker:
         s = self.dot_settings
         if region is None:
             reach = 4 * self.settings.search_radius_px + 8 * s.window_margin_px
-            probe = Dot(tuple(predicted), 0.0, (2.0 * reach, 0.0), 1.0, 0.0, 0.0, False)
+            probe = Dot(tuple(predicted), 0.0, (2.0 * reach, 0.0), 1.0, 0.0, 0.0, 0.0, False)
             region = self._window(image.shape, predicted, probe)
         window = image[region.y : region.y + region.height, region.x : region.x + region.width]
         offset = np.array([region.x, region.y], np.float64)
@@ -412,5 +429,6 @@ class PaintedDotTracker:
             nearest.fill,
             nearest.level,
             nearest.surround,
+            nearest.spread,
             nearest.cut,
         )

@@ -77,7 +77,7 @@ def test_a_reference_frame_without_painted_dots_is_refused_before_the_start(tmp_
     assert done.returncode == 2
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1, done.stderr
-    assert "error: reference frame: " in lines[0] and "painted dot" in lines[0], lines[0]
+    assert "error: reference frame: no painted dot found above grey" in lines[0], lines[0]
     assert lines[0].endswith('two are needed ([gauge] marks = "dots")'), lines[0]
     assert "Traceback" not in done.stderr
     strain_file = tmp_path / "out" / "strain.csv"
