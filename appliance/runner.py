@@ -402,6 +402,7 @@ class _Reference:
 
     def place_marks(self, reference: Frame) -> tuple[MarkTracker, StrainGauges]:
         """The loop's set-up: marks on the reference frame, tracker and gauges on them."""
+        arrived_unix_ns = time.time_ns()
         config, rig = self.config, self.rig
         g = config.gauge
         check_image_size(self.calibration, reference.image.shape[1], reference.image.shape[0])
@@ -426,7 +427,7 @@ class _Reference:
             layout=layout,
             calibration=self.calibration,
             gauge_length_mm=gauges.gauge_length_mm,
-            epoch_offset_ns=time.time_ns() - exposure_end_ns,
+            epoch_offset_ns=arrived_unix_ns - exposure_end_ns,
             devices={
                 "camera": rig.camera.url,
                 "machine": rig.machine.url if rig.machine is not None else "",
