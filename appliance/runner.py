@@ -58,7 +58,11 @@ from appliance.measure.gauges import (
 )
 from appliance.measure.image_quality import speckle_problem
 from appliance.measure.painted_marks import DotSettings, PaintedMarksNotFound, find_dots
-from appliance.measure.specimen_gauge import GaugeCentre, marks_beyond_parallel_length
+from appliance.measure.specimen_gauge import (
+    IMAGE_CENTRE,
+    GaugeCentre,
+    marks_beyond_parallel_length,
+)
 from appliance.measure.tracking import MarkTracker, warm_up_kernels
 from appliance.plan.exposure import ExposurePlan, exposure_for
 from appliance.plan.pacing import ExposurePacer, Replan
@@ -217,8 +221,9 @@ def run_test(
     ]
     known_before = _run_facts(config, rig, plan, calibration, in_force.exposure_us, triggers)
     facts = {"test_id": test_id, "simulated": simulate, **known_before}
-    reference = _Reference(config, rig, calibration, samples, outputs, facts)
-    drops = DropWarning(1.0 / plan.frame_period_s, _warning_listener(recorder, hooks))
+    warn = _warning_listener(recorder, hooks)
+    reference = _Reference(config, rig, calibration, samples, outputs, facts, warn)
+    drops = DropWarning(1.0 / plan.frame_period_s, warn)
     loop = MeasurementLoop(
         rig.camera,
         rig.machine,
@@ -390,6 +395,7 @@ class _Reference:
         samples: _SampleLog,
         outputs: list[RunOutput],
         facts: dict[str, Any],
+        warn: Callable[[str], None],
     ) -> None:
         self.config = config
         self.rig = rig
@@ -397,6 +403,7 @@ class _Reference:
         self.samples = samples
         self.outputs = outputs
         self.facts = facts
+        self.warn = warn
         self.points_placed = 0
         self.placement: dict[str, Any] = {}
 
@@ -437,6 +444,12 @@ class _Reference:
         )
         for output in self.outputs:
             output.begin(run_facts)
+        if centre.placement == IMAGE_CENTRE:
+            self.warn(
+                "nothing stands out from the background of the reference frame: the gauge is "
+                f"centred on the image along [gauge] axis_deg = {centre.axis_deg:g}; set "
+                "[gauge] centre_x_px and centre_y_px if the specimen is elsewhere"
+            )
         return tracker, gauges
 
     def _placed_marks(self, reference: Frame) -> tuple[np.ndarray, StrainGaugesLayout, GaugeCentre]:
