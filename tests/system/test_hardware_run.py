@@ -106,6 +106,8 @@ def test_extensometer_run_measures_a_gige_specimen_against_its_truth(tmp_path):
     summary = json.loads(done.stdout)
     assert summary["exit_status"] == "completed" and "strain" in summary["reason"]
     assert summary["camera_outages"] == 0 and summary["frames_without_controller"] == 0
+    assert summary["gauge_placement"] == "image centre"
+    assert "warning: nothing stands out from the background" in done.stderr
     statistics = summary["camera_statistics"]
     assert statistics["frames_lost"] == 0
     measured_or_dropped = summary["frames_processed"] + 1 + summary["frames_dropped"]
