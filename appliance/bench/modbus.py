@@ -255,6 +255,9 @@ def _figures(run: Mapping[str, Any]) -> dict[str, Any]:
         "loop_latency_ms": percentiles_ms(loop_latency),
         "max_abs_strain_error": float(np.max(np.abs(run["strain_errors"]))),
     }
+    figures["in_tracker_medians"] = _in_tracker_medians(
+        figures["delivery_to_register_ms"], figures["stages_ms"]["tracker_track"]
+    )
     client = run["client"]
     if client is not None:
         seen = [(t, f) for t, f in client["seen"] if f in updated_at]
@@ -267,6 +270,21 @@ def _figures(run: Mapping[str, Any]) -> dict[str, Any]:
             "frames_seen": len(seen),
         }
     return figures
+
+
+def _in_tracker_medians(
+    delivery: Mapping[str, float | None], tracker: Mapping[str, float | None]
+) -> dict[str, float | None]:
+    """Delivery -> register update's p50 and p99 over the tracker's own median time: the
+    latency as a multiple of the work it cannot avoid, which travels between machines better
+    than milliseconds do (1 = the register is updated as soon as the tracker is done)."""
+    median = tracker["p50"]
+    if not median:
+        return {"p50": None, "p99": None}
+    return {
+        key: (None if delivery[key] is None else float(delivery[key]) / median)
+        for key in ("p50", "p99")
+    }
 
 
 def measure_modbus_latency(frames: int = 500) -> dict[str, Any]:
@@ -332,6 +350,12 @@ def format_table(figures: Mapping[str, Any]) -> str:
         ]
         lines += [_row(f"  {stage}", stats) for stage, stats in run["stages_ms"].items()]
         lines.append(_row("loop latency (delivery -> sample)", run["loop_latency_ms"]))
+        ratio = run["in_tracker_medians"]
+        if ratio["p50"] is not None:
+            lines.append(
+                f"| delivery -> register update / tracker_track p50 | {ratio['p50']:.2f} x | "
+                f"{ratio['p99']:.2f} x | |"
+            )
         client = run.get("client")
         if client:
             lines += [

@@ -538,6 +538,12 @@ def test_latency_benchmark_runs_and_writes_its_report(tmp_path, capsys):
             "publish",
         }
         assert run["max_abs_strain_error"] < 1e-3
+        ratio = run["in_tracker_medians"]
+        stages = run["stages_ms"]
+        assert ratio["p50"] == pytest.approx(
+            run["delivery_to_register_ms"]["p50"] / stages["tracker_track"]["p50"]
+        )
+        assert ratio["p50"] >= 1.0 and ratio["p99"] >= ratio["p50"]
     assert figures["with_polling_client"]["client"]["frames_seen"] > 0
 
 
