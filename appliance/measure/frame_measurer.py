@@ -6,7 +6,7 @@ replay on the recorded pixels reproduces the recorded strain exactly:
 
 1. the marks are tracked at the frame's device time: speckle by
    `appliance.measure.tracking.MarkTracker`, painted dots by
-   `appliance.measure.painted_marks.PaintedDotTracker` (the same interface);
+   `appliance.measure.painted_marks_tracker.PaintedDotTracker` (the same interface);
 2. their positions become strains (`appliance.measure.gauges.StrainGauges`); a zero request makes
    this frame's gauge lengths the new L0 first;
 3. the sample is *valid* when every axial gauge mark had a measured point and the force has
@@ -29,7 +29,8 @@ import numpy as np
 
 from appliance.measure.frame_windows import ImageWindow, cut_windows
 from appliance.measure.gauges import Calibration, StrainGauges, StrainGaugesLayout, StrainReading
-from appliance.measure.painted_marks import DotSettings, PaintedDotTracker
+from appliance.measure.painted_marks import DotSettings
+from appliance.measure.painted_marks_tracker import PaintedDotTracker
 from appliance.measure.tracking import MarkTracker, TrackerSettings, TrackStatus
 from hal.camera.base import Frame
 from hal.machine.base import MachineState

@@ -7,12 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from appliance.measure.painted_marks import (
-    DotSettings,
-    PaintedDotTracker,
-    PaintedMarksNotFound,
-    find_dots,
-)
+from appliance.measure.painted_marks import DotSettings, PaintedMarksNotFound, find_dots
+from appliance.measure.painted_marks_tracker import PaintedDotTracker
 from appliance.measure.tracking import TrackStatus
 from appliance.sim.world import PRESETS, SimWorld
 from hal.camera.base import Region
