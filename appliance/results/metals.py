@@ -9,7 +9,10 @@ of the broken specimen is not valid). Each result names the samples it was taken
   that ends while the force still rises has not shown its maximum.
 * **ReH, ReL**, upper and lower yield strength (discontinuous yielding only): ReH is the
   stress before the first fall of force by `YIELD_DROP_FRACTION` (1 %) before Rm, from a
-  stress of at least `YIELD_MIN_FRACTION` (20 %) of Rm (noise at the start is no yield); ReL the
+  stress of at least `YIELD_MIN_FRACTION` (20 %) of Rm (noise at the start is no yield), at
+  the end of the elastic range: its plastic extension from the first elastic line (10 % to
+  40 % of the largest stress) below `YIELD_MAX_PLASTIC` (1 %). A later first fall is a
+  serration of work hardening (the Portevin-Le Chatelier effect), not a yield point; ReL the
   lowest stress of the yield phase that follows (up to where the stress rises past ReH again,
   or Rm), leaving out the initial transient (the first local minimum, when there are
   several). Without such a fall the material yields continuously, and both are reported as
@@ -20,16 +23,26 @@ of the broken specimen is not valid). Each result names the samples it was taken
   largest stress and refined with the Rp0.2 it gives until the range stops changing. At least
   `MIN_FIT_SAMPLES` (5) samples; the basis gives the fit range, the samples and the slope's
   standard error.
+  The 10 % to 50 % range is this product's choice, not a clause of ISO 6892-1.
 * **Rp0.2**, proof strength: the stress where the plastic extension e - (R - R0) / E first
   reaches 0.2 % (the line parallel to the elastic line, ISO 6892-1 13.1), linearly
   interpolated between the two samples around it.
-* **Ag**, plastic extension at maximum force (ISO 6892-1 3.6.3): Agt - Rm / E, with Agt the
-  strain of the sample of largest stress (on the flat top of the curve, one frame's strain
-  step decides which sample that is).
+* **Ag**, plastic extension at maximum force (ISO 6892-1 3.6.3): the plastic extension
+  e - (R - R0) / E at Agt and Rm. Agt is where a cubic least-squares fit of stress against
+  strain peaks (a cubic, as the top of a curve is not symmetric about its maximum), fitted to
+  the samples from the first to the last whose stress lies within `AGT_BAND_FRACTION`
+  (0.5 %) of the largest: the force's noise moves the single largest sample along the flat
+  top of the curve, and the fit is this product's way of finding where the top lies. With
+  fewer than `MIN_FIT_SAMPLES` samples there, or a fit that does not peak among them, Agt is
+  the strain of the sample of largest stress, and the basis says so.
 * **A**, percentage elongation after fracture, from the extensometer (ISO 6892-1 20.2): the
-  strain of the last valid sample before the fracture less its elastic part R / E (the
-  extension the specimen gives back when the force falls). Determined only when the test ran
-  to the break; it is the standard's A only when the fracture lies between the gauge marks.
+  plastic extension e - (R - R0) / E of the last valid sample before the fracture (its
+  elastic part is the extension the specimen gives back when the force falls). Determined
+  only when the test ran to the break; it is the standard's A only when the fracture lies
+  between the gauge marks.
+
+Ag, A and Rp0.2 all take the strain from the elastic line's zero (R0 its stress at e = 0), so
+a strain offset at the start of the test (slack taken up, a toe) does not move them.
 
 References:
     ISO 6892-1:2019 Metallic materials - Tensile testing - Part 1: Method of test at room
@@ -49,6 +62,8 @@ from appliance.results.series import TestSeries, why_no_stress
 RM_DROP_FRACTION = 0.005
 YIELD_DROP_FRACTION = 0.01
 YIELD_MIN_FRACTION = 0.2
+YIELD_MAX_PLASTIC = 0.01
+AGT_BAND_FRACTION = 0.005
 MODULUS_FIT_RANGE = (0.10, 0.50)
 FIRST_FIT_RANGE = (0.10, 0.40)
 MIN_FIT_SAMPLES = 5
@@ -69,9 +84,11 @@ _NAMES = {
 _ORDER = ("E", "Rp0.2", "ReH", "ReL", "Rm", "Ag", "A")
 
 
-def _result(symbol: str, value: float, samples: tuple[int, int], basis: str) -> Result:
+def _result(
+    symbol: str, value: float, samples: tuple[int, int], basis: str, at_sample: int | None = None
+) -> Result:
     name, unit = _NAMES[symbol]
-    return Result.determined(symbol, name, unit, value, samples, basis)
+    return Result.determined(symbol, name, unit, value, samples, basis, at_sample=at_sample)
 
 
 def _missing(symbol: str, reason: str) -> Result:
@@ -113,6 +130,7 @@ class _Curve:
         self.strain = strain
         self.stress = stress_mpa
         self.peak = int(np.argmax(stress_mpa))
+        self.line: _Line | None = None
 
     def tensile_strength(self, broke: bool) -> Result:
         stress, peak = self.stress, self.peak
@@ -141,6 +159,9 @@ class _Curve:
             return {"ReH": _missing("ReH", reason), "ReL": _missing("ReL", reason)}
         fall = int(falls[0])
         upper = int(np.argmax(stress[:fall]))
+        late = self._late_first_fall(upper)
+        if late is not None:
+            return {"ReH": _missing("ReH", late), "ReL": _missing("ReL", late)}
         above = np.flatnonzero(stress[fall:] > stress[upper])
         end = fall + int(above[0]) if above.size else self.peak
         phase = stress[upper:end]
@@ -166,8 +187,26 @@ class _Curve:
                 (first, last),
                 f"lowest stress of the yield phase, samples {first} to {last}{transient}: "
                 f"sample {int(self.index[lowest])}",
+                at_sample=int(self.index[lowest]),
             ),
         }
+
+    def _late_first_fall(self, upper: int) -> str | None:
+        """Why the first fall of force, after sample position `upper`, is no yield point (it
+        came past `YIELD_MAX_PLASTIC` of plastic extension), or None."""
+        reference_mpa = float(self.stress[: self.peak + 1].max())
+        fit = self._fit((FIRST_FIT_RANGE[0] * reference_mpa, FIRST_FIT_RANGE[1] * reference_mpa))
+        if isinstance(fit, str):
+            return None
+        plastic = float(self._plastic(fit)[upper])
+        if plastic < YIELD_MAX_PLASTIC:
+            return None
+        return (
+            f"continuous yielding: the first fall of force by {100 * YIELD_DROP_FRACTION:g} % "
+            f"(after sample {int(self.index[upper])}) came at a plastic extension of "
+            f"{100 * plastic:.3g} %, past the end of the elastic range "
+            f"({100 * YIELD_MAX_PLASTIC:g} %): a serration of work hardening, no yield point"
+        )
 
     def modulus_and_proof(self, upper_yield: Result | None) -> dict[str, Result]:
         """E and Rp0.2, each refining the other's fit range."""
@@ -189,6 +228,7 @@ class _Curve:
                 break
             fractions, (reference, reference_mpa) = MODULUS_FIT_RANGE, refined
         (low, high), name = used
+        self.line = fit
         fit_basis = (
             f"least-squares line through samples {fit.first} to {fit.last} ({fit.count} "
             f"samples) with stress from {fit.low_mpa:.4g} to {fit.high_mpa:.4g} MPa "
@@ -259,34 +299,69 @@ class _Curve:
     def plastic_extension_at_maximum(self, tensile: Result, modulus: Result) -> Result:
         if tensile.value is None:
             return _missing("Ag", f"Rm: {tensile.reason}")
-        if modulus.value is None:
+        if modulus.value is None or self.line is None:
             return _missing("Ag", f"E: {modulus.reason}")
-        total = self.strain[self.peak]
-        value = 100.0 * (total - tensile.value / (modulus.value * 1e3))
-        sample = int(self.index[self.peak])
+        total, at, how = self._strain_at_maximum()
+        value = 100.0 * (total - (tensile.value - self.line.intercept_mpa) / self.line.slope_mpa)
         return _result(
             "Ag",
             value,
-            (sample, sample),
-            f"Agt {100 * total:.4g} %, the strain at the largest stress (sample {sample}), "
-            "less Rm / E",
+            (int(self.index[at[0]]), int(self.index[at[1]])),
+            f"Agt {100 * total:.4g} %, {how}; less (Rm - R0) / E",
+            at_sample=int(self.index[at[2]]),
+        )
+
+    def _strain_at_maximum(self) -> tuple[float, tuple[int, int, int], str]:
+        """Agt, the positions (first, last, nearest) of the samples it was taken from, and
+        how it was taken."""
+        stress, strain = self.stress, self.strain
+        near = np.flatnonzero(stress >= stress[self.peak] * (1.0 - AGT_BAND_FRACTION))
+        first, last = int(near[0]), int(near[-1])
+        band = f"{100 * AGT_BAND_FRACTION:g} % of the largest"
+        if last - first + 1 >= MIN_FIT_SAMPLES:
+            e = strain[first : last + 1]
+            centre = float(e.mean())
+            cubic = np.polynomial.Polynomial.fit(e - centre, stress[first : last + 1], 3)
+            slope, bend = cubic.deriv(1), cubic.deriv(2)
+            tops = [
+                float(root.real) + centre
+                for root in slope.roots()
+                if abs(root.imag) < 1e-12 and bend(root.real) < 0
+            ]
+            inside = [agt for agt in tops if e.min() <= agt <= e.max()]
+            if inside:
+                agt = inside[0]
+                nearest = first + int(np.argmin(np.abs(e - agt)))
+                return (
+                    agt,
+                    (first, last, nearest),
+                    f"the peak of a cubic least-squares fit of stress against strain through "
+                    f"samples {int(self.index[first])} to {int(self.index[last])} "
+                    f"(stress within {band})",
+                )
+        peak = self.peak
+        return (
+            float(strain[peak]),
+            (peak, peak, peak),
+            f"the strain of the sample of largest stress ({int(self.index[peak])}; no "
+            f"cubic fit peaks among the {last - first + 1} samples with stress within "
+            f"{band})",
         )
 
     def elongation_after_fracture(self, modulus: Result, broke: bool) -> Result:
         if not broke:
             return _missing("A", "the test ended before the fracture")
-        if modulus.value is None:
+        if modulus.value is None or self.line is None:
             return _missing("A", f"E: {modulus.reason}")
         last = self.stress.size - 1
-        elastic = self.stress[last] / (modulus.value * 1e3)
-        value = 100.0 * (self.strain[last] - elastic)
+        value = 100.0 * float(self._plastic(self.line)[last])
         sample = int(self.index[last])
         return _result(
             "A",
             value,
             (sample, sample),
-            f"strain of the last valid sample before the fracture ({sample}) less its elastic "
-            "part R / E; the standard's A when the fracture lies between the gauge marks",
+            f"plastic extension e - (R - R0) / E of the last valid sample before the fracture "
+            f"({sample}); the standard's A when the fracture lies between the gauge marks",
         )
 
 

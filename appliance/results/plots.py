@@ -58,7 +58,7 @@ def stress_strain_svg(
     series: TestSeries, cross_section_mm2: float | None, results: TestResults | None
 ) -> str:
     """Stress (force without a cross-section) against strain in %, valid samples only, with
-    the stress results marked where their samples lie."""
+    the stress results marked at the strain of the sample each lies at (`Result.at_sample`)."""
     plt = _pyplot()
     figure, axes = plt.subplots(figsize=(WIDTH_IN, HEIGHT_IN))
     keep = series.valid & np.isfinite(series.force_n)
@@ -70,9 +70,9 @@ def stress_strain_svg(
     axes.plot(strain, load, lw=1.0, color="#2166ac")
     if results is not None and cross_section_mm2 is not None:
         for result in results.results:
-            if result.unit != "MPa" or result.value is None or result.samples is None:
+            if result.unit != "MPa" or result.value is None or result.at_sample is None:
                 continue
-            position = np.flatnonzero(series.index[keep] == result.samples[1])
+            position = np.flatnonzero(series.index[keep] == result.at_sample)
             if position.size:
                 axes.plot(strain[position[0]], result.value, "o", mfc="none", color="#b2182b")
                 axes.annotate(

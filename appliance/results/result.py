@@ -32,6 +32,9 @@ class Result:
         samples: (first, last) sample index the value was taken from; None when not determined.
         basis: how the value was taken from those samples (fit range, interpolation).
         reason: why it was not determined (None when it was).
+        at_sample: the sample index whose strain the result lies at on the curve (ReL: its
+            lowest-stress sample; an interpolated result: the later sample); None when not
+            determined.
     """
 
     symbol: str
@@ -41,6 +44,7 @@ class Result:
     samples: tuple[int, int] | None = None
     basis: str = ""
     reason: str | None = None
+    at_sample: int | None = None
 
     @classmethod
     def determined(
@@ -51,11 +55,16 @@ class Result:
         value: float,
         samples: tuple[int, int],
         basis: str,
+        *,
+        at_sample: int | None = None,
     ) -> Result:
-        """A result taken from samples `samples[0]` to `samples[1]`; NaN is refused."""
+        """A result taken from samples `samples[0]` to `samples[1]`, lying at the strain of
+        sample `at_sample` (default `samples[1]`); NaN is refused."""
         if not math.isfinite(value):
             raise ValueError(f"{symbol}: a result must be a finite number, got {value}")
-        return cls(symbol, name, unit, float(value), (int(samples[0]), int(samples[1])), basis)
+        first, last = int(samples[0]), int(samples[1])
+        at = last if at_sample is None else int(at_sample)
+        return cls(symbol, name, unit, float(value), (first, last), basis, None, at)
 
     @classmethod
     def not_determined(cls, symbol: str, name: str, unit: str, reason: str) -> Result:

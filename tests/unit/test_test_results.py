@@ -71,6 +71,8 @@ def test_an_upper_yield_point_gives_reh_and_rel_without_the_initial_transient():
     assert found["ReH"].value == pytest.approx(300.0)
     assert found["ReH"].samples == (15, 15)
     assert found["ReL"].value == pytest.approx(280.0)
+    assert found["ReL"].at_sample == 20
+    assert found["ReH"].at_sample == 15
     assert "initial transient" in found["ReL"].basis
     assert found["Rm"].value == pytest.approx(450.0)
     assert found["E"].value == pytest.approx(200.0, rel=1e-9)
@@ -89,6 +91,47 @@ def test_elongation_after_fracture_takes_the_elastic_part_off_the_last_strain():
     expected = 100 * (series.strain[-1] - last_stress / (found["E"].value * 1e3))
     assert found["A"].value == pytest.approx(expected)
     assert found["A"].samples == (len(series) - 1, len(series) - 1)
+
+
+def necking_curve(points=5001):
+    """E 210 GPa up to a parabolic top R = 510 - 2500 (e - 0.15)^2 MPa: Agt 15 %, Ag 14.757 %."""
+    strain = np.linspace(0.0, 0.25, points)
+    stress = np.minimum(210e3 * strain, 510.0 - 2500.0 * (strain - 0.15) ** 2)
+    return strain, stress, 100 * (0.15 - 510.0 / 210e3)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_ag_under_force_noise_is_taken_where_a_fit_of_the_top_peaks(seed):
+    strain, stress, true_ag = necking_curve()
+    noisy = stress * (1 + np.random.default_rng(seed).normal(0.0, 5e-4, strain.size))
+    found = metals.metal_results(curve(strain, noisy), AREA_MM2, broke=True)
+    assert found["Ag"].value == pytest.approx(true_ag, abs=0.05)
+    assert "cubic least-squares fit" in found["Ag"].basis
+    first, last = found["Ag"].samples
+    assert noisy[first : last + 1].min() >= 0.99 * noisy.max()
+    assert first <= found["Ag"].at_sample <= last
+
+
+def test_a_strain_offset_at_the_start_moves_neither_ag_nor_a_nor_rp02():
+    strain, stress, _ = necking_curve()
+    plain = metals.metal_results(curve(strain, stress), AREA_MM2, broke=True)
+    shifted = metals.metal_results(curve(strain + 0.002, stress), AREA_MM2, broke=True)
+    for symbol in ("Ag", "A", "Rp0.2", "E", "Rm"):
+        assert shifted[symbol].value == pytest.approx(plain[symbol].value, abs=1e-6), symbol
+
+
+def test_serrations_during_work_hardening_are_no_yield_point():
+    strain = np.linspace(0.0, 0.15, 15001)
+    grid = np.linspace(0.0, 400.0, 400001)
+    stress = np.interp(strain, grid / 70e3 + 0.002 * (grid / 250.0) ** 12, grid)
+    serrated = stress * (1 - np.where(strain > 0.03, 0.015 * ((strain * 200) % 1.0), 0.0))
+    found = metals.metal_results(curve(strain, serrated), AREA_MM2, broke=True)
+    for symbol in ("ReH", "ReL"):
+        assert found[symbol].value is None
+        assert found[symbol].reason.startswith("continuous yielding: the first fall")
+        assert "serration of work hardening" in found[symbol].reason
+    assert found["Rp0.2"].value == pytest.approx(250.0, rel=2e-3)
+    assert found["E"].value == pytest.approx(70.0, rel=1e-3)
 
 
 def test_a_test_stopped_in_the_elastic_range_determines_only_the_modulus():
