@@ -28,13 +28,16 @@ of the broken specimen is not valid). Each result names the samples it was taken
   reaches 0.2 % (the line parallel to the elastic line, ISO 6892-1 13.1), linearly
   interpolated between the two samples around it.
 * **Ag**, plastic extension at maximum force (ISO 6892-1 3.6.3): the plastic extension
-  e - (R - R0) / E at Agt and Rm. Agt is where a cubic least-squares fit of stress against
-  strain peaks (a cubic, as the top of a curve is not symmetric about its maximum), fitted to
-  the samples from the first to the last whose stress lies within `AGT_BAND_FRACTION`
-  (0.5 %) of the largest: the force's noise moves the single largest sample along the flat
-  top of the curve, and the fit is this product's way of finding where the top lies. With
-  fewer than `MIN_FIT_SAMPLES` samples there, or a fit that does not peak among them, Agt is
-  the strain of the sample of largest stress, and the basis says so.
+  e - (R - R0) / E at Agt and Rm. The force's noise moves the single largest sample along the
+  flat top of the curve, so Agt is where a cubic least-squares fit of stress against strain
+  peaks (a cubic, as the top of a curve is not symmetric about its maximum), fitted to the
+  samples from the first to the last whose stress lies within `AGT_BAND_NOISE` (10) times the
+  stress's noise of the largest, at most `AGT_BAND_FRACTION` (0.5 %) of it; the noise is
+  the robust spread of the second differences of the stress around the top. A noiseless
+  curve thus keeps Agt at its largest sample, where a sharp maximum (necking setting in)
+  lies. With fewer than `MIN_FIT_SAMPLES` samples in the band, or a fit that does not peak
+  among them, Agt is the strain of the sample of largest stress; the basis says which. The
+  fit is this product's way of finding where a noisy top lies.
 * **A**, percentage elongation after fracture, from the extensometer (ISO 6892-1 20.2): the
   plastic extension e - (R - R0) / E of the last valid sample before the fracture (its
   elastic part is the extension the specimen gives back when the force falls). Determined
@@ -64,6 +67,7 @@ YIELD_DROP_FRACTION = 0.01
 YIELD_MIN_FRACTION = 0.2
 YIELD_MAX_PLASTIC = 0.01
 AGT_BAND_FRACTION = 0.005
+AGT_BAND_NOISE = 10.0
 MODULUS_FIT_RANGE = (0.10, 0.50)
 FIRST_FIT_RANGE = (0.10, 0.40)
 MIN_FIT_SAMPLES = 5
@@ -315,9 +319,13 @@ class _Curve:
         """Agt, the positions (first, last, nearest) of the samples it was taken from, and
         how it was taken."""
         stress, strain = self.stress, self.strain
-        near = np.flatnonzero(stress >= stress[self.peak] * (1.0 - AGT_BAND_FRACTION))
+        top = float(stress[self.peak])
+        region = stress[stress >= top * (1.0 - AGT_BAND_FRACTION)]
+        noise_mpa = _noise_mpa(stress[self.peak - region.size : self.peak + region.size + 1])
+        band_mpa = min(AGT_BAND_NOISE * noise_mpa, AGT_BAND_FRACTION * top)
+        near = np.flatnonzero(stress >= top - band_mpa)
         first, last = int(near[0]), int(near[-1])
-        band = f"{100 * AGT_BAND_FRACTION:g} % of the largest"
+        band = f"{band_mpa:.3g} MPa of the largest, {AGT_BAND_NOISE:g} times its noise"
         if last - first + 1 >= MIN_FIT_SAMPLES:
             e = strain[first : last + 1]
             centre = float(e.mean())
@@ -363,6 +371,15 @@ class _Curve:
             f"plastic extension e - (R - R0) / E of the last valid sample before the fracture "
             f"({sample}); the standard's A when the fracture lies between the gauge marks",
         )
+
+
+def _noise_mpa(stress_mpa: np.ndarray) -> float:
+    """The stress's noise, MPa: the robust spread of its second differences (each holds the
+    noise of three samples, sqrt(6) times one's), 0 with fewer than three samples."""
+    if stress_mpa.size < 3:
+        return 0.0
+    second = np.diff(stress_mpa, 2)
+    return float(np.median(np.abs(second - np.median(second)))) / 0.6745 / math.sqrt(6.0)
 
 
 @dataclass(frozen=True)

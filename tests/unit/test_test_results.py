@@ -112,6 +112,15 @@ def test_ag_under_force_noise_is_taken_where_a_fit_of_the_top_peaks(seed):
     assert first <= found["Ag"].at_sample <= last
 
 
+def test_a_sharp_maximum_without_noise_keeps_agt_at_its_sample():
+    strain = np.concatenate([np.arange(0.0, 0.01, 1e-5), np.arange(0.01, 0.1701, 1e-3)])
+    top = np.where(strain < 0.15, 2500.0, 50000.0) * (strain - 0.15) ** 2
+    stress = np.minimum(210e3 * strain, 510.0 - top)
+    found = metals.metal_results(curve(strain, stress), AREA_MM2, broke=False)
+    assert found["Ag"].value == pytest.approx(100 * (0.15 - 510.0 / 210e3), abs=1e-6)
+    assert "the strain of the sample of largest stress" in found["Ag"].basis
+
+
 def test_a_strain_offset_at_the_start_moves_neither_ag_nor_a_nor_rp02():
     strain, stress, _ = necking_curve()
     plain = metals.metal_results(curve(strain, stress), AREA_MM2, broke=True)
