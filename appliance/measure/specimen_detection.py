@@ -25,7 +25,8 @@ backdrop), a little rotated, off-centre, with the grips in view:
    that level and of 2, 4, ... 32 times it: the shoulders' symmetry fixes it to a fraction of
    a pixel where the flat start of the arcs would not. A parallel length that touches the
    image's side is refused; one that runs out of the image at one end or both (a view that
-   cuts it) is centred on the part in view, and says which ends are in view;
+   cuts it), or whose width does not rise onto a shoulder (a plain bar), is centred on the
+   part measured, and says which ends were seen;
 4. a straight line fitted to each edge over the middle 80 % of the run (points beyond 3 median
    deviations dropped once): the axis is their mean direction, the width their distance across
    it at the centre, the centre halfway between the edges.
@@ -69,6 +70,9 @@ OUTLIER_PX = 1.0
 """A row whose width differs from the median of the `OUTLIER_WINDOW_PX` rows about it by more
 than `OUTLIER_PX` and 4 robust standard deviations of that difference (a speckle at the edge
 fooled its edge search) is left out."""
+MIN_EDGE_ROWS = 10
+"""Fewest rows with a located edge, on each side, that a parallel length's edge lines are fitted
+through."""
 
 
 class SpecimenNotFound(ValueError):
@@ -94,8 +98,10 @@ class SpecimenDetection:
         parallel_length_px: distance between the ends, px.
         edge_rms_px: root mean square of the edge points about their fitted lines, px.
         ends_in_view: whether each end of the parallel length (in the order of
-            `parallel_ends_px`) is in the image; an end out of view is where the image ends,
-            and the centre along the axis is then the middle of the part in view.
+            `parallel_ends_px`) was seen: the width rises onto a shoulder in the image. An
+            end not seen (the image ends first, or the width does not rise within a quarter
+            of the parallel length beyond it: a plain bar's end) is where the measured part
+            ends, and the centre along the axis is then the middle of that part.
         dark_on_bright: the specimen is darker than its background (back-lit).
         outline_px: (n, 2) the outline of the region found (the specimen, with any grip that
             touches it), px, for display.
@@ -254,7 +260,7 @@ def _measure_along(
     across = np.array([-along[1], along[0]])
     s = (points - centre) @ along
     t = (points - centre) @ across
-    margin = 4 * region.factor + 8
+    margin = 4 * region.factor + _REACH_PX + 2
     s_grid = np.arange(math.floor(s.min() - margin), math.ceil(s.max() + margin) + 1.0)
     t_grid = np.arange(math.floor(t.min() - margin), math.ceil(t.max() + margin) + 1.0)
     map_x = (centre[0] + s_grid[:, None] * along[0] + t_grid[None, :] * across[0]).astype(
@@ -304,6 +310,10 @@ def _measure_along(
         s_centre = 0.5 * (first_end + last_end)
     trim = max(1, int(FIT_TRIM * (stop - start)))
     rows = np.arange(start + trim, stop - trim)
+    if min(np.isfinite(left[rows]).sum(), np.isfinite(right[rows]).sum()) < MIN_EDGE_ROWS:
+        raise SpecimenNotFound(
+            "the specimen's edges could not be located along its parallel length"
+        )
     left_line, left_rms = robust_line(s_grid[rows], t_grid[0] + left[rows])
     right_line, right_rms = robust_line(s_grid[rows], t_grid[0] + right[rows])
     s_mid = s_centre
@@ -333,7 +343,7 @@ def _edges(
     right = np.full(rows, np.nan)
     touching = np.zeros(rows, bool)
     index = np.arange(cols)
-    reach = _SEARCH_PX + _LEVEL_PX[1]
+    reach = _REACH_PX
     for r in np.nonzero(mask[:, centre_col])[0]:
         background = ~mask[r]
         before = index[: centre_col + 1][background[: centre_col + 1]]
@@ -355,16 +365,22 @@ _SEARCH_PX = 8
 """How far either side of the segmentation's edge the sub-pixel edge is looked for, px."""
 _LEVEL_PX = (2, 5)
 """The grey levels either side of an edge are averaged this far from it, px."""
+_REACH_PX = 2 * _SEARCH_PX
+"""How far from the segmentation's edge `_crossing` may read, px: its second pass searches
+`_SEARCH_PX` about a first edge up to `_SEARCH_PX` away (`_LEVEL_PX[1]` is less)."""
 
 
 def _crossing(profile: np.ndarray, j: int, step: int, sign: float) -> float:
     """Column where `profile` crosses halfway between its levels just outside and just inside
     the edge near column `j` (the specimen lies in direction `step`): found once about `j`,
-    then again about the first estimate."""
+    then again about the first estimate. NaN where it crosses nowhere, or where the search
+    would leave `profile`."""
     edge = float(j)
     for _ in range(2):
         k = int(round(edge))
         near, far = _LEVEL_PX
+        if k - max(_SEARCH_PX, far) < 0 or k + max(_SEARCH_PX, far) >= len(profile):
+            return math.nan
         outside = profile[k - far * step : k - near * step + step : step].mean()
         inside = profile[k + near * step : k + far * step + step : step].mean()
         mid = 0.5 * (outside + inside)

@@ -28,9 +28,12 @@ both sides, is a speckle's doing, not a shoulder (which widens on to the tab).""
 
 def parallel_run(widths: np.ndarray, window: int) -> tuple[int, int] | None:
     """[start, stop) rows of the longest run whose width (a running median over `window` rows)
-    exceeds the
-    parallel width by no more than the tolerance, bumps of less than `BUMP_TOLERANCES` with
-    narrow rows on both sides included; None when shorter than 20 rows."""
+    exceeds the parallel width by no more than the tolerance, bumps of less than
+    `BUMP_TOLERANCES` with narrow rows on both sides included; None when shorter than 20 rows.
+    A row without a width (NaN in the running median: no specimen on the axis, or edges lost
+    to a speckle) ends a run, unless the parallel width resumes after it within `2 * window`
+    rows (such a gap is bridged). None also when fewer than half of the run's rows have a
+    width."""
     valid = np.isfinite(widths)
     if valid.sum() < 20:
         return None
@@ -44,14 +47,20 @@ def parallel_run(widths: np.ndarray, window: int) -> tuple[int, int] | None:
         reference = float(np.median(finite[finite <= reference + tolerance]))
     tolerance = max(PARALLEL_TOLERANCE[0], PARALLEL_TOLERANCE[1] * reference)
     excess = smooth - reference
-    within = ~(excess > tolerance)
-    labels, count = ndimage.label(~within)
+    within = excess <= tolerance
+    labels, count = ndimage.label(excess > tolerance)
     for number in range(1, count + 1):
         rows = np.nonzero(labels == number)[0]
         first, last = rows[0], rows[-1]
-        bounded = first > 0 and last < len(smooth) - 1
-        bounded = bounded and np.isfinite(smooth[first - 1]) and np.isfinite(smooth[last + 1])
-        if bounded and np.nanmax(excess[rows]) < BUMP_TOLERANCES * tolerance:
+        bounded = first > 0 and last < len(smooth) - 1 and within[first - 1] and within[last + 1]
+        if bounded and np.max(excess[rows]) < BUMP_TOLERANCES * tolerance:
+            within[rows] = True
+    labels, count = ndimage.label(~np.isfinite(smooth))
+    for number in range(1, count + 1):
+        rows = np.nonzero(labels == number)[0]
+        first, last = rows[0], rows[-1]
+        bounded = first > 0 and last < len(smooth) - 1 and within[first - 1] and within[last + 1]
+        if bounded and rows.size <= 2 * window:
             within[rows] = True
     best: tuple[int, int] | None = None
     start = None
@@ -62,12 +71,11 @@ def parallel_run(widths: np.ndarray, window: int) -> tuple[int, int] | None:
             if best is None or i - start > best[1] - best[0]:
                 best = (start, i)
             start = None
-    if best is None:
+    if best is None or np.isfinite(widths[best[0] : best[1]]).sum() < max(
+        20, (best[1] - best[0]) // 2
+    ):
         return None
-    finite_rows = np.nonzero(np.isfinite(smooth[best[0] : best[1]]))[0] + best[0]
-    if finite_rows.size < 20:
-        return None
-    return int(finite_rows[0]), int(finite_rows[-1]) + 1
+    return best
 
 
 def parallel_ends(
@@ -80,8 +88,9 @@ def parallel_ends(
     midpoints between the two sides' crossings of that level and of 2, 4, ... 32 times it,
     as far as both sides reach them within a quarter of the run beyond its ends (the steep
     part of the shoulders, before any grip): the shoulders' symmetry fixes it better than the
-    flat start of the transition arcs does. An end is None where the width does not depart
-    from the parallel width before the image ends (`in_view` False).
+    flat start of the transition arcs does. An end is None where it is not seen: the width
+    does not depart from the parallel width before the image ends (`in_view` False), nor
+    within a quarter of the run (the specimen ends there, or its width is lost).
     """
     smooth = running_mean(widths, 5)
     reference = float(np.nanmedian(smooth[start:stop]))
@@ -95,8 +104,8 @@ def parallel_ends(
         high = _outward_crossing(s_grid, smooth, stop - 1, 1, level, reach, in_view)
         if k == 0:
             ends = (
-                float(s_grid[start]) if low is not None and math.isnan(low) else low,
-                float(s_grid[stop - 1]) if high is not None and math.isnan(high) else high,
+                None if low is None or math.isnan(low) else low,
+                None if high is None or math.isnan(high) else high,
             )
         if low is None or high is None or math.isnan(low) or math.isnan(high):
             break

@@ -133,3 +133,33 @@ def test_marks_beyond_the_parallel_length_are_named():
     too_long, _ = place_marks(found.centre_px, 40.0, calibration, axis_deg=found.axis_deg)
     why = marks_beyond_parallel_length(too_long, found)
     assert why is not None and "more than its parallel length" in why
+
+
+@pytest.mark.parametrize("shape", [(600, 400), (480, 640), (1200, 800)])
+def test_a_bar_in_a_small_view_is_found_like_in_a_large_one(shape):
+    """A plain 120 x 400 px bar in the middle of the view: its edges lie well inside the image
+    whatever the image's size (no edge search reaches out of it)."""
+    height, width = shape
+    image = np.full(shape, 20, np.uint8)
+    image[height // 2 - 200 : height // 2 + 200, width // 2 - 60 : width // 2 + 60] = 200
+    found = detect_specimen(image)
+    assert found.centre_px == pytest.approx(((width - 1) / 2, (height - 1) / 2), abs=0.5)
+    assert found.width_px == pytest.approx(120.0, abs=0.1)
+    assert found.axis_deg == pytest.approx(90.0, abs=0.01)
+    assert found.ends_in_view == (False, False)
+
+
+@pytest.mark.parametrize("sensor_size", [(640, 480), (480, 640), (800, 600)])
+def test_a_specimen_in_a_small_view_is_found_with_its_ends(sensor_size):
+    width, height = sensor_size
+    image, truth = render_specimen_view(
+        Specimen.iso6892_flat(),
+        scale_mm_per_px=200.0 / (0.9 * height),
+        sensor_size=sensor_size,
+        lighting="front-dark",
+        seed=3,
+    )
+    found = detect_specimen(image)
+    assert found.ends_in_view == (True, True)
+    assert np.hypot(*np.subtract(found.centre_px, truth.centre_px)) < 2.0
+    assert found.width_px == pytest.approx(truth.width_px, abs=0.3)
