@@ -27,6 +27,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from appliance.config import Config, register_map_of
 from appliance.devices.mcu_trigger import McuTriggerLine, connect_trigger_line
 from appliance.devices.polled_machine import PolledMachine
@@ -246,17 +248,29 @@ def _hardware_rig(config: Config) -> Rig:
 
 
 def gauge_centre_for(config: Config) -> Callable[[Frame], GaugeCentre]:
-    """Where the gauge of a test goes on its reference frame: at `[gauge] centre_x_px`,
-    `centre_y_px` along `[gauge] axis_deg` when both are set, else centred on the parallel
-    length of the specimen detected in the frame, along its axis. A frame in which nothing
+    """Where the gauge of a test goes on its reference frame: `gauge_centre_in` the frame's
+    image, a refusal naming the reference frame.
+
+    Raises:
+        InputError: as `gauge_centre_in`.
+    """
+    place = gauge_centre_in(config, "reference frame")
+    return lambda reference: place(reference.image)
+
+
+def gauge_centre_in(config: Config, source: str) -> Callable[[np.ndarray], GaugeCentre]:
+    """Where the gauge goes on an image (the reference frame of a test, or an image
+    `extensometer detect` is shown): at `[gauge] centre_x_px`, `centre_y_px` along
+    `[gauge] axis_deg` when both are set (nothing is detected), else centred on the parallel
+    length of the specimen detected in the image, along its axis. An image in which nothing
     stands out from the background (a speckle from edge to edge: a specimen that fills the
-    view) centres the gauge on the image along `[gauge] axis_deg`; the speckle check then
-    refuses a frame that holds nothing to track.
+    view) centres the gauge on the image along `[gauge] axis_deg`; a test's speckle check
+    then refuses a frame that holds nothing to track.
 
     Raises:
         InputError: only one of the centre's keys is set (here); from the returned function,
-            a reference frame in which no single specimen can be measured, naming what was
-            seen.
+            an image in which no single specimen can be measured, naming `source` and what
+            was seen.
     """
     g = config.gauge
     if (g.centre_x_px is None) != (g.centre_y_px is None):
@@ -268,15 +282,15 @@ def gauge_centre_for(config: Config) -> Callable[[Frame], GaugeCentre]:
         configured = GaugeCentre((g.centre_x_px, g.centre_y_px), g.axis_deg, CONFIGURED)
         return lambda reference: configured
 
-    def detected(reference: Frame) -> GaugeCentre:
+    def detected(image: np.ndarray) -> GaugeCentre:
         try:
-            return detected_gauge_centre(reference.image)
+            return detected_gauge_centre(image)
         except NothingStandsOut:
-            height, width = reference.image.shape[:2]
+            height, width = image.shape[:2]
             return GaugeCentre(((width - 1) / 2, (height - 1) / 2), g.axis_deg, IMAGE_CENTRE)
         except SpecimenNotFound as exc:
             raise InputError(
-                f"reference frame: {exc} (or set [gauge] centre_x_px and centre_y_px)"
+                f"{source}: {exc} (or set [gauge] centre_x_px and centre_y_px)"
             ) from None
 
     return detected
