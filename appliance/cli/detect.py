@@ -1,14 +1,22 @@
 """`extensometer detect`: find the specimen in an image and show where the gauge would go.
 
-The same detection and placement a test runs on its reference frame (`appliance.rig`,
-`appliance.measure.specimen_gauge`): the specimen's centre on its parallel length
-(`centre_x_px`, `centre_y_px`), its axis (`axis_deg`, the convention of `[gauge] axis_deg`:
-degrees from the image's +x towards +y, 90 = vertical), its width, the parallel length's ends;
-and, when the configuration gives the gauge length and a scale (`[optics]` or
-`[optics] calibration`), the gauge marks a test would place (each mark's centre) and the
-gauge length they achieve. A `[gauge] centre_x_px`, `centre_y_px` in the configuration places
-the marks there, as in a test. A specimen that cannot be found, or a gauge that does not fit
-its parallel length, is refused in one line (exit status 2).
+The same placement a test makes on its reference frame (`appliance.rig.gauge_centre_in`):
+
+* without `[gauge] centre_x_px`, `centre_y_px`: the specimen detected
+  (`appliance.measure.specimen_detection`): its centre on its parallel length (`centre_x_px`,
+  `centre_y_px`), its axis (`axis_deg`, the convention of `[gauge] axis_deg`: degrees from the
+  image's +x towards +y, 90 = vertical), its width, the parallel length's ends and whether
+  each was seen (`ends_in_view`), the gauge centred on it (`gauge_placement` "detected");
+  an image in which nothing stands out from the background (a specimen that fills the view)
+  puts the gauge on the image's centre along `[gauge] axis_deg` (`gauge_placement`
+  "image centre"), and says so;
+* with both keys set: the gauge there, along `[gauge] axis_deg` ("configured"); nothing is
+  detected, as in a test.
+
+When the configuration gives the gauge length and a scale (`[optics]` or `[optics]
+calibration`), the gauge marks a test would place (each mark's centre) and the gauge length
+they achieve follow. A specimen that cannot be measured, or a gauge that does not fit the
+image or the detected parallel length, is refused in one line (exit status 2).
 """
 
 from __future__ import annotations
@@ -24,15 +32,24 @@ from appliance.cli.printing import print_json
 from appliance.config import Config
 from appliance.errors import InputError
 from appliance.measure.gauges import Calibration, marks_outside, place_marks
-from appliance.measure.specimen_detection import SpecimenDetection, SpecimenNotFound
 from appliance.measure.specimen_gauge import (
     CONFIGURED,
+    IMAGE_CENTRE,
     GaugeCentre,
-    detected_gauge_centre,
     marks_beyond_parallel_length,
 )
 from appliance.plan.optics import configured_optics
+from appliance.rig import gauge_centre_in
 from appliance.run.object_plane import calibration_file, resolved_calibration_path
+
+PLACEMENT_NOTES = {
+    CONFIGURED: "[gauge] centre_x_px, centre_y_px along [gauge] axis_deg; nothing detected",
+    IMAGE_CENTRE: (
+        "nothing stands out from the background (a specimen that fills the view): the gauge "
+        "is centred on the image along [gauge] axis_deg"
+    ),
+}
+"""What the text output says of a placement other than on the detected specimen."""
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -55,19 +72,18 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 def detect_command(args: argparse.Namespace) -> int:
     """Run `detect`; exit status 0."""
     config = resolved_calibration_path(arguments.configuration(args.config, args), args.config)
+    place = gauge_centre_in(config, str(args.image))
     image = read_grey(args.image)
-    g = config.gauge
-    try:
-        detected = detected_gauge_centre(image)
-    except SpecimenNotFound as exc:
-        raise InputError(f"{args.image}: {exc}") from None
-    detection = detected.detection
-    assert detection is not None
-    centre = detected
-    if g.centre_x_px is not None and g.centre_y_px is not None:
-        centre = GaugeCentre((g.centre_x_px, g.centre_y_px), g.axis_deg, CONFIGURED)
-    gauge = gauge_marks(config, centre, detection, image.shape)
-    document: dict[str, Any] = {"image": str(args.image), **detection.as_dict(), "gauge": gauge}
+    centre = place(image)
+    detection = centre.detection
+    document: dict[str, Any] = {
+        "image": str(args.image),
+        **(detection.as_dict() if detection is not None else {}),
+        "gauge_placement": centre.placement,
+        "gauge_centre_px": [float(centre.centre_px[0]), float(centre.centre_px[1])],
+        "gauge_axis_deg": float(centre.axis_deg),
+        "gauge": gauge_marks(config, centre, image.shape),
+    }
     if args.json:
         print_json(document, sys.stdout)
     else:
@@ -76,9 +92,10 @@ def detect_command(args: argparse.Namespace) -> int:
 
 
 def gauge_marks(
-    config: Config, centre: GaugeCentre, detection: SpecimenDetection, shape: tuple[int, ...]
+    config: Config, centre: GaugeCentre, shape: tuple[int, ...]
 ) -> dict[str, Any] | None:
-    """The marks a test would place about `centre`; None without a gauge length or a scale.
+    """The marks a test would place about `centre` (checked against its detected parallel
+    length, when it has one); None without a gauge length or a scale.
 
     Raises:
         InputError: marks beyond the image or the parallel length, naming the key.
@@ -104,7 +121,7 @@ def gauge_marks(
     if outside is not None:
         raise InputError(f"[gauge] length_mm: {outside}: shorten the gauge or move its centre")
     if centre.detection is not None:
-        beyond = marks_beyond_parallel_length(points, detection)
+        beyond = marks_beyond_parallel_length(points, centre.detection)
         if beyond is not None:
             raise InputError(f"[gauge] length_mm: {beyond}")
     axial = layout.axial
@@ -138,23 +155,35 @@ def _calibration(config: Config, size: tuple[int, int]) -> Calibration | None:
 
 def _print_text(document: dict[str, Any]) -> None:
     out = sys.stdout
-    (x1, y1), (x2, y2) = document["parallel_ends_px"]
-    rows: list[tuple[str, str]] = [
-        ("centre_x_px", f"{document['centre_x_px']:.2f}"),
-        ("centre_y_px", f"{document['centre_y_px']:.2f}"),
-        ("axis_deg", f"{document['axis_deg']:.3f}"),
-        ("width_px", f"{document['width_px']:.2f}"),
-        ("parallel_length_px", f"{document['parallel_length_px']:.1f}"),
-        ("parallel_ends_px", f"({x1:.1f}, {y1:.1f}) ({x2:.1f}, {y2:.1f})"),
-        ("edge_rms_px", f"{document['edge_rms_px']:.3f}"),
-        ("lighting", document["lighting"]),
+    placement = document["gauge_placement"]
+    rows: list[tuple[str, str]] = []
+    if "parallel_ends_px" in document:
+        (x1, y1), (x2, y2) = document["parallel_ends_px"]
+        first, second = ("seen" if seen else "not seen" for seen in document["ends_in_view"])
+        rows += [
+            ("centre_x_px", f"{document['centre_x_px']:.2f}"),
+            ("centre_y_px", f"{document['centre_y_px']:.2f}"),
+            ("axis_deg", f"{document['axis_deg']:.3f}"),
+            ("width_px", f"{document['width_px']:.2f}"),
+            ("parallel_length_px", f"{document['parallel_length_px']:.1f}"),
+            ("parallel_ends_px", f"({x1:.1f}, {y1:.1f}) ({x2:.1f}, {y2:.1f})"),
+            ("ends_in_view", f"{first}, {second}"),
+            ("edge_rms_px", f"{document['edge_rms_px']:.3f}"),
+            ("lighting", document["lighting"]),
+        ]
+    gx, gy = document["gauge_centre_px"]
+    rows += [
+        ("gauge_placement", placement),
+        ("gauge_centre_px", f"({gx:.2f}, {gy:.2f})"),
+        ("gauge_axis_deg", f"{document['gauge_axis_deg']:.3f}"),
     ]
+    if placement in PLACEMENT_NOTES:
+        rows.append(("gauge_placement_note", PLACEMENT_NOTES[placement]))
     gauge = document["gauge"]
     if gauge is None:
         rows.append(("gauge", "- (needs [gauge] length_mm and [optics] or a calibration)"))
     else:
         rows += [
-            ("gauge_placement", gauge["placement"]),
             ("gauge_length_mm", f"{gauge['length_mm']:g}"),
             ("gauge_length_achieved_mm", f"{gauge['achieved_length_mm']:.4f}"),
         ]

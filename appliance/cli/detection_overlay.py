@@ -3,10 +3,13 @@
 `save_detection_overlay(path, image, ...)` writes a colour PNG (or any format OpenCV writes by
 the file's extension) of the frame, stretched to 8 bits, with the specimen's outline (green),
 its axis over the parallel length (blue), the parallel length's ends (yellow ticks across the
-axis) and, when the configuration gives a gauge length and a scale, the gauge marks a test
-would place (red points, their centres circled); the placement and the figures are written in
-the top-left corner. A frame without a single specimen gets the refusal written on it
-instead: the overlay shows what was seen either way.
+axis, labelled when not seen) and, when the configuration gives a gauge length and a scale,
+the gauge marks a test would place (red points, their centres circled); the placement and the
+figures are written in the top-left corner. The gauge goes where a test puts it
+(`appliance.rig.gauge_centre_in`): a configured centre without detection, the image's centre
+when nothing stands out (a specimen that fills the view), said as such. A frame without a
+single specimen gets the refusal written on it instead: the overlay shows what was seen
+either way.
 """
 
 from __future__ import annotations
@@ -16,11 +19,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from appliance.cli.detect import gauge_marks
+from appliance.cli.detect import PLACEMENT_NOTES, gauge_marks
 from appliance.config import Config
 from appliance.errors import InputError
-from appliance.measure.specimen_detection import SpecimenNotFound
-from appliance.measure.specimen_gauge import CONFIGURED, GaugeCentre, detected_gauge_centre
+from appliance.rig import gauge_centre_in
 
 GREEN = (0, 200, 0)
 BLUE = (255, 120, 0)
@@ -36,28 +38,42 @@ def detection_overlay(image: np.ndarray, max_value: float, config: Config) -> np
     canvas = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
     scale = max(1, round(max(canvas.shape[:2]) / 1000))
     try:
-        centre = detected_gauge_centre(image)
-    except SpecimenNotFound as exc:
-        _text(canvas, [f"no specimen measured: {exc}"], scale)
+        centre = gauge_centre_in(config, "frame")(image)
+    except InputError as exc:
+        _text(canvas, [f"no gauge placed: {exc}"], scale)
         return canvas
     found = centre.detection
-    assert found is not None
-    g = config.gauge
-    if g.centre_x_px is not None and g.centre_y_px is not None:
-        centre = GaugeCentre((g.centre_x_px, g.centre_y_px), g.axis_deg, CONFIGURED)
-    outline = np.round(found.outline_px).astype(np.int32).reshape(-1, 1, 2)
-    cv2.polylines(canvas, [outline], True, GREEN, scale, cv2.LINE_AA)
-    first, second = (np.asarray(end) for end in found.parallel_ends_px)
-    cv2.line(canvas, _px(first), _px(second), BLUE, scale, cv2.LINE_AA)
-    across = np.array([-found.along[1], found.along[0]]) * (0.6 * found.width_px)
-    for end in (first, second):
-        cv2.line(canvas, _px(end - across), _px(end + across), YELLOW, scale, cv2.LINE_AA)
-    lines = [
-        f"specimen: centre ({found.centre_px[0]:.1f}, {found.centre_px[1]:.1f}) px, "
-        f"axis {found.axis_deg:.2f} deg, width {found.width_px:.2f} px",
-    ]
+    lines = []
+    if found is not None:
+        outline = np.round(found.outline_px).astype(np.int32).reshape(-1, 1, 2)
+        cv2.polylines(canvas, [outline], True, GREEN, scale, cv2.LINE_AA)
+        first, second = (np.asarray(end) for end in found.parallel_ends_px)
+        cv2.line(canvas, _px(first), _px(second), BLUE, scale, cv2.LINE_AA)
+        across = np.array([-found.along[1], found.along[0]]) * (0.6 * found.width_px)
+        for end, seen in zip((first, second), found.ends_in_view, strict=True):
+            cv2.line(canvas, _px(end - across), _px(end + across), YELLOW, scale, cv2.LINE_AA)
+            if not seen:
+                origin = _px(end + across * 1.1)
+                cv2.putText(
+                    canvas,
+                    "end not seen",
+                    origin,
+                    cv2.FONT_HERSHEY_SIMPLEX,
+                    0.4 * scale,
+                    YELLOW,
+                    scale,
+                )
+        lines.append(
+            f"specimen: centre ({found.centre_px[0]:.1f}, {found.centre_px[1]:.1f}) px, "
+            f"axis {found.axis_deg:.2f} deg, width {found.width_px:.2f} px"
+        )
+    lines.append(
+        f"gauge {centre.placement} at ({centre.centre_px[0]:.1f}, {centre.centre_px[1]:.1f}) "
+        f"px, axis {centre.axis_deg:.2f} deg"
+        + (f": {PLACEMENT_NOTES[centre.placement]}" if centre.placement in PLACEMENT_NOTES else "")
+    )
     try:
-        gauge = gauge_marks(config, centre, found, image.shape)
+        gauge = gauge_marks(config, centre, image.shape)
     except InputError as exc:
         lines.append(f"gauge refused: {exc}")
         gauge = None

@@ -1,6 +1,8 @@
 """`extensometer detect IMG`: the specimen's figures and the marks a test would place, as text
-and JSON; an image without a single specimen and a gauge longer than the parallel length are
-refused in one line with exit status 2."""
+and JSON, placed as a test places them (configured without detection, detected, or on the
+centre of a view the specimen fills); an image with more than one object, a specimen at the
+image's side and a gauge longer than the parallel length are refused in one line with exit
+status 2."""
 
 from __future__ import annotations
 
@@ -65,15 +67,51 @@ def test_detect_prints_the_specimen_and_the_marks_it_would_place(tmp_path, capsy
     text = capsys.readouterr().out
     for key in ("centre_x_px", "centre_y_px", "axis_deg", "width_px", "parallel_ends_px"):
         assert key in text
+    assert "ends_in_view               seen, seen" in text
     assert "gauge_placement            detected" in text and "mark_2_px" in text
 
 
-def test_a_configured_centre_places_the_marks_there(tmp_path, capsys):
-    image, _, _ = _image(tmp_path, lighting="front-dark")
-    config = _config(tmp_path, 20.0, "centre_x_px = 500.0\ncentre_y_px = 1010.0\n")
-    assert main(["detect", str(image), "--config", str(config), "--json"]) == 0
-    gauge = json.loads(capsys.readouterr().out)["gauge"]
-    assert gauge["placement"] == "configured" and gauge["centre_px"] == [500.0, 1010.0]
+def test_a_configured_centre_places_the_marks_there_without_detection(tmp_path, capsys):
+    _, left, _ = _image(tmp_path, centre_px=(300.0, 1023.5), lighting="back-lit", seed=1)
+    _, right, _ = _image(tmp_path, centre_px=(720.0, 1023.5), lighting="back-lit", seed=2)
+    two = tmp_path / "two.png"
+    cv2.imwrite(str(two), np.minimum(left, right))
+    config = _config(tmp_path, 20.0, "centre_x_px = 300.0\ncentre_y_px = 1010.0\n")
+    assert main(["detect", str(two), "--config", str(config), "--json"]) == 0
+    document = json.loads(capsys.readouterr().out)
+    assert "centre_x_px" not in document and document["gauge_placement"] == "configured"
+    gauge = document["gauge"]
+    assert gauge["placement"] == "configured" and gauge["centre_px"] == [300.0, 1010.0]
+    assert main(["detect", str(two), "--config", str(config)]) == 0
+    text = capsys.readouterr().out
+    assert "gauge_placement            configured" in text and "nothing detected" in text
+
+
+def test_a_view_the_specimen_fills_centres_the_gauge_on_the_image_and_says_so(tmp_path, capsys):
+    speckle = np.random.default_rng(0).normal(120, 30, (1200, 900)).clip(0, 255)
+    path = tmp_path / "speckle.png"
+    cv2.imwrite(str(path), speckle.astype(np.uint8))
+    config = _config(tmp_path, 20.0)
+    assert main(["detect", str(path), "--config", str(config), "--json"]) == 0
+    document = json.loads(capsys.readouterr().out)
+    assert document["gauge_placement"] == "image centre"
+    assert document["gauge_centre_px"] == [449.5, 599.5]
+    assert document["gauge"]["centre_px"] == [449.5, 599.5]
+    assert main(["detect", str(path)]) == 0
+    text = capsys.readouterr().out
+    assert "gauge_placement            image centre" in text
+    assert "nothing stands out from the background" in text
+
+
+def test_a_plain_bar_in_a_small_image_says_its_ends_were_not_seen(tmp_path, capsys):
+    bar = np.full((600, 400), 20, np.uint8)
+    bar[100:500, 140:260] = 200
+    path = tmp_path / "bar.png"
+    cv2.imwrite(str(path), bar)
+    assert main(["detect", str(path)]) == 0
+    text = capsys.readouterr().out
+    assert "ends_in_view               not seen, not seen" in text
+    assert "gauge_centre_px            (199.50, 299.50)" in text
 
 
 def test_without_a_gauge_length_only_the_specimen_is_printed(tmp_path, capsys):
@@ -85,7 +123,6 @@ def test_without_a_gauge_length_only_the_specimen_is_printed(tmp_path, capsys):
 @pytest.mark.parametrize(
     ("case", "expected"),
     [
-        ("blank", "no specimen: the image is uniform"),
         ("two", "2 objects stand out from the background"),
         ("edge", "touches the image's edge"),
         ("long gauge", "[gauge] length_mm: the marks span"),
@@ -93,10 +130,7 @@ def test_without_a_gauge_length_only_the_specimen_is_printed(tmp_path, capsys):
 )
 def test_bad_input_is_refused_in_one_line(tmp_path, case, expected):
     config = _config(tmp_path, 40.0 if case == "long gauge" else 25.0)
-    if case == "blank":
-        path = tmp_path / "blank.png"
-        cv2.imwrite(str(path), np.full((512, 512), 200, np.uint8))
-    elif case == "two":
+    if case == "two":
         _, left, _ = _image(tmp_path, centre_px=(300.0, 1023.5), lighting="back-lit", seed=1)
         _, right, _ = _image(tmp_path, centre_px=(720.0, 1023.5), lighting="back-lit", seed=2)
         path = tmp_path / "two.png"
