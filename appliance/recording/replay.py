@@ -35,6 +35,11 @@ says where, `recorded_samples` how many samples the recording holds (when its en
 When the `reference.png` attachment is damaged or missing, the reference frame is read from
 the `/camera/full` frame recorded with it (`reference_frame` says which); the file is still
 reported as damaged.
+
+The replay's exit status is its own (completed, or damaged). Its outputs (the report, a
+viewer) follow the test as recorded: when the recording's `run_stop` says the specimen broke
+and every recorded sample was measured again, they see the test end at its break, so the
+report determines the results that need the fracture as the run did.
 """
 
 from __future__ import annotations
@@ -43,7 +48,7 @@ import json
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -385,7 +390,7 @@ def _replay(
         tracking_time_s=tracking_time,
     )
     for output in outputs:
-        output.end(result)
+        output.end(_as_recorded(result, stop))
     extra = {
         **{k: v for k, v in setup.facts.facts.items() if k != "test_id"},
         **_calibration_facts(setup),
@@ -403,6 +408,15 @@ def _replay(
     for output in outputs:
         extra.update(output.stats())
     return RunOutcome(RunSummary.from_run(result, records), extra)
+
+
+def _as_recorded(result: LoopResult, stop: dict[str, str]) -> LoopResult:
+    """The replay's end as its outputs see it: a test the recording says broke ended at its
+    break, when every recorded sample was measured again (the test's results that need the
+    fracture, A, TS and Eb, are then determined as in the run); otherwise the replay's own."""
+    if result.exit_status is ExitStatus.COMPLETED and stop.get("exit_status") == ExitStatus.BREAK:
+        return replace(result, exit_status=ExitStatus.BREAK)
+    return result
 
 
 def _calibration_facts(setup: _Setup) -> dict[str, Any]:

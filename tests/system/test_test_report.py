@@ -1,5 +1,6 @@
 """Results and report.html of whole simulated tests, run and replayed in a real process."""
 
+import html
 import json
 import re
 import subprocess
@@ -89,6 +90,12 @@ def test_run_writes_the_report_beside_the_summary(metal_test):
     for anchor in ("stress-strain", "time-series", "gauge", "validity", "truth-error"):
         assert f'id="{anchor}"' in page
     assert re.search(r"^results +ISO 6892-1: E 2\d\d\.\d+ GPa, Rp0.2 3\d\d", printed, re.M)
+    summary = json.loads((out / "summary.json").read_text())
+    achieved = f"{summary['gauge_length_achieved_mm']:.6g}"
+    label = html.escape("gauge length L0 as placed, the strain's reference (mm)")
+    assert f"<th>{label}</th><td>{achieved}</td>" in page
+    assert f"<th>gauge placement</th><td>{summary['gauge_placement']}</td>" in page
+    assert "<th>gauge length requested (mm)</th>" in page
     assert re.search(rf"^report +{re.escape(str(out / 'report.html'))}$", printed, re.M)
 
 
@@ -112,6 +119,31 @@ def test_replay_writes_its_report_and_summary_into_its_output_directory(metal_te
         "summary.json",
         "t.mcap",
     ]
+
+
+def test_a_replay_of_a_test_that_broke_determines_what_needs_the_fracture(tmp_path):
+    config = tmp_path / "metal.toml"
+    config.write_text(METAL_TO_RM.replace("until_strain = 0.17", "until_break = true"))
+    done = extensometer(
+        "run",
+        "--sim",
+        "--config",
+        str(config),
+        "--out",
+        str(tmp_path / "ran"),
+        "--record",
+        str(tmp_path / "t.mcap"),
+    )
+    assert done.returncode == 0, done.stderr
+    ran = json.loads((tmp_path / "ran" / "summary.json").read_text())
+    assert ran["exit_status"] == "break"
+    assert ran["results"]["A"]["value"] is not None
+    done = extensometer("replay", str(tmp_path / "t.mcap"), "--json")
+    assert done.returncode == 0, done.stderr
+    replayed = json.loads(done.stdout)
+    assert replayed["exit_status"] == "completed"
+    assert replayed["recorded_exit_status"] == "break"
+    assert replayed["results"] == ran["results"]
 
 
 def test_a_report_that_cannot_be_written_is_said_in_one_line(metal_test, tmp_path):
