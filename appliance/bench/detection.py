@@ -5,14 +5,18 @@ specimens (`appliance.sim.specimen_view`): the ISO 37 type 1 dumb-bell at the ru
 scale and the ISO 6892-1 type 1 flat piece at the metal preset's, each under the three
 lightings (a speckled specimen on a dark backdrop and on a white card, a back-lit silhouette),
 rotated from -5 to +5 degrees, off-centre by up to 120 px, half of them with the grips' jaws
-in view, over two seeds (speckle and noise); and the reference views of the two simulated
-tests (`appliance.sim.world`, as `extensometer run --sim` sees them: the rubber's shows one
-tab and only the start of the other shoulder). The product's detection
+in view, over two seeds (speckle and noise), on a 1024 x 2048 px sensor; the same specimens in
+small views (640 x 480 and 800 x 600 px, the whole specimen filling 90 % of the height, without
+grips, three poses: rotated up to 3 degrees, off-centre by up to 20 px), which are segmented
+at full size; and the reference views of the two simulated tests (`appliance.sim.world`, as
+`extensometer run --sim` sees them: the rubber's shows one tab and only the start of the other
+shoulder). The product's detection
 (`appliance.measure.specimen_detection`) runs on each; the views' truth only scores it.
 
 Figures, over the cases, median and worst: the axis's error (target 0.1 degree), the centre's
 distance from the specimen's true centre (2 px), the width's error (0.2 px), and the time the
-detection takes. `--quick`: one seed and three poses.
+detection takes; by lighting, specimen, view, and for each small view, specimen and lighting.
+`--quick`: one seed, three poses (one in the small views).
 """
 
 from __future__ import annotations
@@ -41,6 +45,17 @@ POSES = (
     (-2.5, (-45.0, -110.0), False),
 )
 """(rotation, degrees; offset of the centre from the image's, px; grips in view)."""
+SMALL_VIEWS = ((640, 480), (800, 600))
+"""(width, height) of the small views, px: the specimen's whole length fills
+`SMALL_VIEW_FILL` of the height (`SPECIMEN_LENGTH_MM`), without grips."""
+SMALL_VIEW_FILL = 0.9
+SPECIMEN_LENGTH_MM = {"ISO 37 type 1": 115.0, "ISO 6892-1 type 1": 200.0}
+SMALL_POSES = (
+    (0.0, (0.0, 0.0), False),
+    (-3.0, (-20.0, 6.0), False),
+    (3.0, (15.0, -6.0), False),
+)
+"""The small views' poses (offsets within what keeps the tabs in view)."""
 
 
 def cases(quick: bool) -> list[dict[str, Any]]:
@@ -50,9 +65,18 @@ def cases(quick: bool) -> list[dict[str, Any]]:
         ("ISO 6892-1 type 1", Specimen.iso6892_flat, PRESETS["metal"].optics.scale_mm_per_px),
     )
     poses = POSES[:3] if quick else POSES
+    small_poses = SMALL_POSES[:1] if quick else SMALL_POSES
     seeds = (1,) if quick else (1, 2)
+    views = [(SENSOR, shape, make, scale, poses) for shape, make, scale in shapes]
+    views += [
+        (size, shape, make, SPECIMEN_LENGTH_MM[shape] / (SMALL_VIEW_FILL * size[1]), small_poses)
+        for size in SMALL_VIEWS
+        for shape, make, _ in shapes
+    ]
     return [
         {
+            "view": f"{size[0]}x{size[1]}",
+            "sensor_size": size,
             "shape": shape,
             "specimen": make,
             "scale_mm_per_px": scale,
@@ -62,9 +86,9 @@ def cases(quick: bool) -> list[dict[str, Any]]:
             "grips": grips,
             "seed": seed,
         }
-        for shape, make, scale in shapes
+        for size, shape, make, scale, view_poses in views
         for lighting in LIGHTINGS
-        for rotation, offset, grips in poses
+        for rotation, offset, grips in view_poses
         for seed in seeds
     ]
 
@@ -81,24 +105,26 @@ def _score(image: np.ndarray, centre_px, axis_deg: float, width_px: float) -> di
         "axis_error_deg": abs((found.axis_deg - axis_deg + 90.0) % 180.0 - 90.0),
         "centre_error_px": float(np.hypot(*np.subtract(found.centre_px, centre_px))),
         "width_error_px": found.width_px - width_px,
+        "ends_in_view": list(found.ends_in_view),
         "detection_s": elapsed_s,
     }
 
 
 def _rendered(case: dict[str, Any]) -> dict[str, Any]:
     offset = case["offset_px"]
+    width, height = case["sensor_size"]
     image, truth = render_specimen_view(
         case["specimen"](),
         scale_mm_per_px=case["scale_mm_per_px"],
-        sensor_size=SENSOR,
-        centre_px=(0.5 * (SENSOR[0] - 1) + offset[0], 0.5 * (SENSOR[1] - 1) + offset[1]),
+        sensor_size=(width, height),
+        centre_px=(0.5 * (width - 1) + offset[0], 0.5 * (height - 1) + offset[1]),
         rotation_deg=case["rotation_deg"],
         lighting=case["lighting"],
         grips=case["grips"],
         seed=case["seed"],
     )
     score = _score(image, truth.centre_px, truth.axis_deg, truth.width_px)
-    named = {k: v for k, v in case.items() if k not in ("specimen", "scale_mm_per_px")}
+    named = {k: v for k, v in case.items() if k not in ("specimen", "sensor_size")}
     return {**named, "offset_px": list(offset), **score}
 
 
@@ -109,7 +135,9 @@ def _simulated_test(material: str) -> dict[str, Any]:
     width_px = world.specimen.parallel_width_mm / world.optics.scale_mm_per_px
     score = _score(image, world.specimen_centre_px, 90.0, width_px)
     return {
+        "view": f"{scene.sensor_width}x{scene.sensor_height}",
         "shape": f"simulated {material} test's reference",
+        "scale_mm_per_px": world.optics.scale_mm_per_px,
         "lighting": "front-dark",
         "rotation_deg": 0.0,
         "offset_px": None,
@@ -146,7 +174,29 @@ def run_detection_benchmark(out: Path | None, *, quick: bool = False) -> int:
         shape: _statistics([r for r in results if r["shape"] == shape])
         for shape in dict.fromkeys(r["shape"] for r in results)
     }
-    table = _table(overall, by_lighting, by_shape, results)
+    by_view = {
+        f"view {view}": _statistics([r for r in results if r["view"] == view])
+        for view in dict.fromkeys(r["view"] for r in results)
+    }
+    small = {
+        f"{view} {shape}, {lighting}": _statistics(
+            [
+                r
+                for r in results
+                if (r["view"], r["shape"], r["lighting"]) == (view, shape, lighting)
+            ]
+        )
+        for view in (f"{w}x{h}" for w, h in SMALL_VIEWS)
+        for shape in SPECIMEN_LENGTH_MM
+        for lighting in LIGHTINGS
+    }
+    groups = {
+        **{f"lighting {name}": figures for name, figures in by_lighting.items()},
+        **by_shape,
+        **by_view,
+        **small,
+    }
+    table = _table(overall, groups, results)
     print(table)
     if out is not None:
         figures = {
@@ -154,6 +204,8 @@ def run_detection_benchmark(out: Path | None, *, quick: bool = False) -> int:
             "overall": overall,
             "by_lighting": by_lighting,
             "by_shape": by_shape,
+            "by_view": by_view,
+            "small_views": small,
             "cases": results,
         }
         report = write_report(
@@ -176,10 +228,7 @@ def _row(name: str, figures: dict[str, Any]) -> str:
 
 
 def _table(
-    overall: dict[str, Any],
-    by_lighting: dict[str, dict[str, Any]],
-    by_shape: dict[str, dict[str, Any]],
-    results: list[dict[str, Any]],
+    overall: dict[str, Any], groups: dict[str, dict[str, Any]], results: list[dict[str, Any]]
 ) -> str:
     met = overall["targets_met"]
     lines = [
@@ -187,8 +236,7 @@ def _table(
         "width error, px | detection, s |",
         "|---|---|---|---|---|---|---|",
         _row("all", overall),
-        *(_row(f"lighting {name}", figures) for name, figures in by_lighting.items()),
-        *(_row(name, figures) for name, figures in by_shape.items()),
+        *(_row(name, figures) for name, figures in groups.items()),
         "",
         "Targets over all cases (worst): "
         + ", ".join(
@@ -200,7 +248,8 @@ def _table(
     if refusals:
         lines += ["", "Refused:"]
         lines += [
-            f"- {r['shape']}, {r['lighting']}, {r['rotation_deg']:+g} deg: {r['refusal']}"
+            f"- {r['view']} {r['shape']}, {r['lighting']}, {r['rotation_deg']:+g} deg: "
+            f"{r['refusal']}"
             for r in refusals
         ]
     return "\n".join(lines)
