@@ -34,12 +34,14 @@ from appliance.devices.mcu_trigger import McuTriggerLine, connect_trigger_line
 from appliance.devices.polled_machine import PolledMachine
 from appliance.devices.trigger_stamping import TriggerStampedCamera
 from appliance.errors import InputError
+from appliance.measure.gauges import Calibration, StrainGaugesLayout, marks_outside, place_marks
 from appliance.measure.specimen_detection import NothingStandsOut, SpecimenNotFound
 from appliance.measure.specimen_gauge import (
     CONFIGURED,
     IMAGE_CENTRE,
     GaugeCentre,
     detected_gauge_centre,
+    marks_beyond_parallel_length,
 )
 from appliance.plan.exposure import ExposurePlan
 from appliance.plan.optics import Optics, configured_optics
@@ -309,3 +311,42 @@ def _check_trigger_url(config: Config, *, simulate: bool) -> None:
         )
     if trigger.url and simulate and not config.sim.realtime:
         raise InputError("[trigger] url: the microcontroller runs in real time: set [sim] realtime")
+
+
+def speckle_marks(
+    config: Config,
+    centre: GaugeCentre,
+    gauge_length_mm: float,
+    calibration: Calibration,
+    shape: tuple[int, ...],
+) -> tuple[np.ndarray, StrainGaugesLayout]:
+    """The speckle marks a test places about `centre`: `[gauge]`'s points per mark, spacing and
+    transverse width, `gauge_length_mm` apart along the gauge's axis, checked against an image
+    of `shape` and against the detected parallel length when there is one.
+
+    Raises:
+        InputError: marks that cannot be placed, beyond the image or beyond the parallel
+            length, naming `[gauge] length_mm`.
+    """
+    g = config.gauge
+    try:
+        points, layout = place_marks(
+            centre.centre_px,
+            gauge_length_mm,
+            calibration,
+            axis_deg=centre.axis_deg,
+            mark_width_px=g.mark_spacing_px * (g.points_per_mark - 1),
+            points_per_mark=g.points_per_mark,
+            transverse_width_mm=g.transverse_width_mm or None,
+            along_axis=True,
+        )
+    except ValueError as exc:
+        raise InputError(f"[gauge] length_mm: {exc}") from None
+    outside = marks_outside(points, shape, config.tracking.min_subset_px)
+    if outside is not None:
+        raise InputError(f"[gauge] length_mm: {outside}: shorten the gauge or move its centre")
+    if centre.detection is not None:
+        beyond = marks_beyond_parallel_length(points, centre.detection)
+        if beyond is not None:
+            raise InputError(f"[gauge] length_mm: {beyond}")
+    return points, layout

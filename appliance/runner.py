@@ -53,15 +53,12 @@ from appliance.measure.gauges import (
     Gauge,
     StrainGauges,
     StrainGaugesLayout,
-    marks_outside,
-    place_marks,
 )
 from appliance.measure.image_quality import speckle_problem
 from appliance.measure.painted_marks import DotSettings, PaintedMarksNotFound, find_dots
 from appliance.measure.specimen_gauge import (
     IMAGE_CENTRE,
     GaugeCentre,
-    marks_beyond_parallel_length,
 )
 from appliance.measure.tracking import MarkTracker, warm_up_kernels
 from appliance.plan.exposure import ExposurePlan, exposure_for
@@ -75,7 +72,7 @@ from appliance.plan.trigger_plan import (
 from appliance.recording.writer import McapRecorder
 from appliance.results.report_output import TestReport
 from appliance.results.series import cross_section_mm2
-from appliance.rig import Rig, rig_for
+from appliance.rig import Rig, rig_for, speckle_marks
 from appliance.run.disk_space import DiskReserve, check_free_space
 from appliance.run.drops import DropWarning
 from appliance.run.loop import DeviceEvent, LoopResult, MeasurementLoop, call_in_control
@@ -455,28 +452,10 @@ class _Reference:
     def _placed_marks(self, reference: Frame) -> tuple[np.ndarray, StrainGaugesLayout, GaugeCentre]:
         """Speckle marks placed on the gauge centre of the reference frame, checked."""
         config, rig = self.config, self.rig
-        g = config.gauge
         centre = rig.gauge_centre(reference)
-        try:
-            points, layout = place_marks(
-                centre.centre_px,
-                rig.gauge_length_mm,
-                self.calibration,
-                axis_deg=centre.axis_deg,
-                mark_width_px=g.mark_spacing_px * (g.points_per_mark - 1),
-                points_per_mark=g.points_per_mark,
-                transverse_width_mm=g.transverse_width_mm or None,
-                along_axis=True,
-            )
-        except ValueError as exc:
-            raise InputError(f"[gauge] length_mm: {exc}") from None
-        outside = marks_outside(points, reference.image.shape, config.tracking.min_subset_px)
-        if outside is not None:
-            raise InputError(f"[gauge] length_mm: {outside}: shorten the gauge or move its centre")
-        if centre.detection is not None:
-            beyond = marks_beyond_parallel_length(points, centre.detection)
-            if beyond is not None:
-                raise InputError(f"[gauge] length_mm: {beyond}")
+        points, layout = speckle_marks(
+            config, centre, rig.gauge_length_mm, self.calibration, reference.image.shape
+        )
         _check_speckle(reference.image, points, layout.marks, config)
         return points, layout, centre
 

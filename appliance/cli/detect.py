@@ -30,16 +30,14 @@ from appliance.cli import arguments
 from appliance.cli.image_files import read_grey
 from appliance.cli.printing import print_json
 from appliance.config import Config
-from appliance.errors import InputError
-from appliance.measure.gauges import Calibration, marks_outside, place_marks
+from appliance.measure.gauges import Calibration
 from appliance.measure.specimen_gauge import (
     CONFIGURED,
     IMAGE_CENTRE,
     GaugeCentre,
-    marks_beyond_parallel_length,
 )
 from appliance.plan.optics import configured_optics
-from appliance.rig import gauge_centre_in
+from appliance.rig import gauge_centre_in, speckle_marks
 from appliance.run.object_plane import calibration_file, resolved_calibration_path
 
 PLACEMENT_NOTES = {
@@ -104,26 +102,7 @@ def gauge_marks(
     calibration = _calibration(config, (shape[1], shape[0]))
     if g.length_mm is None or calibration is None:
         return None
-    try:
-        points, layout = place_marks(
-            centre.centre_px,
-            g.length_mm,
-            calibration,
-            axis_deg=centre.axis_deg,
-            mark_width_px=g.mark_spacing_px * (g.points_per_mark - 1),
-            points_per_mark=g.points_per_mark,
-            transverse_width_mm=g.transverse_width_mm or None,
-            along_axis=True,
-        )
-    except ValueError as exc:
-        raise InputError(f"[gauge] length_mm: {exc}") from None
-    outside = marks_outside(points, shape, config.tracking.min_subset_px)
-    if outside is not None:
-        raise InputError(f"[gauge] length_mm: {outside}: shorten the gauge or move its centre")
-    if centre.detection is not None:
-        beyond = marks_beyond_parallel_length(points, centre.detection)
-        if beyond is not None:
-            raise InputError(f"[gauge] length_mm: {beyond}")
+    points, layout = speckle_marks(config, centre, g.length_mm, calibration, shape)
     axial = layout.axial
     if calibration.projection is not None:
         achieved = axial.length_mm(points, calibration.projection)
