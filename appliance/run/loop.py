@@ -78,6 +78,12 @@ from hal.machine.base import MachineState, TestingMachine
 OUTAGE_RETRY_S = 0.05
 """Pause between fetch attempts while the camera is away (its backend paces reconnects)."""
 
+OUTAGE_SETTLE_S = 1.0
+"""A camera that goes away again within this long of coming back, s, is still in the outage
+it came back from (counted once): a camera resumed after a stall longer than its heartbeat
+timeout, or restarted, may send a frame or two before the host learns it no longer controls
+it and reconnects."""
+
 LIVENESS_PERIOD_S = 0.1
 """How often the loop's threads are watched and the liveness listeners called."""
 
@@ -123,7 +129,8 @@ class LoopResult:
         latencies_s: per-sample latency, s.
         tracking_time_s: wall time spent tracking (the measurement's own cost).
         final_state: the run state at the end.
-        camera_outages: times the camera went away during the run.
+        camera_outages: times the camera went away during the run (a return that lasted
+            less than `OUTAGE_SETTLE_S` does not end an outage).
         camera_outage_s: total time without the camera, s (wall time).
         controller_outages: times the controller could not be read after it had been.
         samples_without_controller: frames acquired without the controller's state.
@@ -253,6 +260,7 @@ class MeasurementLoop:
         self.machine_listeners = list(machine_listeners)
         self._wall = wall
         self._outage_since: float | None = None
+        self._restored_s: float | None = None
         self._controller_lost = False
         self._time_offset_ns = 0
         self._last_timestamp_ns = 0
@@ -374,6 +382,7 @@ class MeasurementLoop:
                 away_s = time.monotonic() - self._outage_since
                 self._result.camera_outage_s += away_s
                 self._outage_since = None
+                self._restored_s = time.monotonic()
                 self._emit(
                     DeviceEvent("camera", self.camera.url, "restored", f"back after {away_s:.1f} s")
                 )
@@ -558,7 +567,12 @@ class MeasurementLoop:
         first = self._outage_since is None
         if first:
             self._outage_since = now
-            self._result.camera_outages += 1
+            settled = (
+                self._restored_s is None
+                or self._last_delivered_s - self._restored_s >= OUTAGE_SETTLE_S
+            )
+            if settled:
+                self._result.camera_outages += 1
         away_s = now - self._outage_since
         if away_s > self.camera_outage_timeout_s:
             raise HardwareConnectError(
@@ -573,6 +587,7 @@ class MeasurementLoop:
         away_s = time.monotonic() - self._outage_since
         self._result.camera_outage_s += away_s
         self._outage_since = None
+        self._restored_s = time.monotonic()
         if frame.frame_id <= self._last_frame_id:
             self._last_frame_id = frame.frame_id - 1
         host_elapsed_ns = int((time.monotonic() - self._last_delivered_s) * 1e9)

@@ -42,6 +42,23 @@ class ScheduledOutageScene(StretchingScene):
         return super().render(start_s, stop_s, region)
 
 
+class TwoOutagesScene(StretchingScene):
+    """The stretching scene, unreachable in two windows of simulated time; every frame it
+    renders takes `render_s` of wall time (the loop judges a return by wall time)."""
+
+    def __init__(self, windows: list[tuple[float, float]], render_s: float = 0.0) -> None:
+        super().__init__()
+        self.windows, self.render_s = windows, render_s
+
+    def render(
+        self, start_s: float, stop_s: float, region: Region
+    ) -> tuple[np.ndarray, Mapping[str, Any]]:
+        if any(first <= start_s < last for first, last in self.windows):
+            raise HardwareConnectError("sim://camera: control lost")
+        time.sleep(self.render_s)
+        return super().render(start_s, stop_s, region)
+
+
 class RestartedCamera:
     """A camera that comes back from its outage rebooted: frame counter and clock at zero."""
 
@@ -108,6 +125,26 @@ def _run(camera, machine=None, *, outage_timeout_s: float, frames: int = 20):
     )
     result = loop.run(StopCriteria(until_break=False, max_frames=frames))
     return result, samples, events
+
+
+def test_a_camera_gone_again_just_after_it_came_back_is_one_outage():
+    """Back for one frame, then away again (a camera that resumes and only then is found to
+    have dropped this host's control): one outage, both stretches of its time counted."""
+    scene = TwoOutagesScene([(0.45, 1.05), (1.15, 1.55)])
+    result, samples, events = _run(_camera(scene), outage_timeout_s=30.0)
+    assert result.exit_status == "completed" and result.frames_processed == 20
+    assert result.camera_outages == 1
+    kinds = [e.kind for e in events if e.kind != "waiting"]
+    assert kinds == ["lost", "restored", "lost", "restored"]
+    times = [round(sample.time_s, 3) for sample in samples]
+    assert 1.1 in times and 1.2 not in times and 1.6 in times
+
+
+def test_a_camera_back_for_longer_than_the_settling_time_starts_a_new_outage_when_it_goes():
+    scene = TwoOutagesScene([(0.45, 1.05), (2.45, 2.85)], render_s=0.1)
+    result, _, _ = _run(_camera(scene), outage_timeout_s=30.0, frames=30)
+    assert result.exit_status == "completed"
+    assert result.camera_outages == 2
 
 
 def test_a_camera_outage_is_waited_through_and_reported():
