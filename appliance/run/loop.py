@@ -78,11 +78,11 @@ from hal.machine.base import MachineState, TestingMachine
 OUTAGE_RETRY_S = 0.05
 """Pause between fetch attempts while the camera is away (its backend paces reconnects)."""
 
-OUTAGE_SETTLE_S = 1.0
-"""A camera that goes away again within this long of coming back, s, is still in the outage
-it came back from (counted once): a camera resumed after a stall longer than its heartbeat
-timeout, or restarted, may send a frame or two before the host learns it no longer controls
-it and reconnects."""
+OUTAGE_SETTLE_FRAMES = 3
+"""A camera that goes away again before it has sent this many frames since it came back is
+still in the outage it came back from (counted once): a camera resumed after a stall longer
+than its heartbeat timeout, or restarted, may send a frame or two before the host learns it
+no longer controls it and reconnects."""
 
 LIVENESS_PERIOD_S = 0.1
 """How often the loop's threads are watched and the liveness listeners called."""
@@ -129,8 +129,8 @@ class LoopResult:
         latencies_s: per-sample latency, s.
         tracking_time_s: wall time spent tracking (the measurement's own cost).
         final_state: the run state at the end.
-        camera_outages: times the camera went away during the run (a return that lasted
-            less than `OUTAGE_SETTLE_S` does not end an outage).
+        camera_outages: times the camera went away during the run (a return of fewer than
+            `OUTAGE_SETTLE_FRAMES` frames does not end an outage).
         camera_outage_s: total time without the camera, s (wall time).
         controller_outages: times the controller could not be read after it had been.
         samples_without_controller: frames acquired without the controller's state.
@@ -260,7 +260,7 @@ class MeasurementLoop:
         self.machine_listeners = list(machine_listeners)
         self._wall = wall
         self._outage_since: float | None = None
-        self._restored_s: float | None = None
+        self._frames_since_return: int | None = None
         self._controller_lost = False
         self._time_offset_ns = 0
         self._last_timestamp_ns = 0
@@ -382,7 +382,7 @@ class MeasurementLoop:
                 away_s = time.monotonic() - self._outage_since
                 self._result.camera_outage_s += away_s
                 self._outage_since = None
-                self._restored_s = time.monotonic()
+                self._frames_since_return = 0
                 self._emit(
                     DeviceEvent("camera", self.camera.url, "restored", f"back after {away_s:.1f} s")
                 )
@@ -539,6 +539,8 @@ class MeasurementLoop:
                 self._last_frame_id = frame.frame_id
                 self._last_timestamp_ns = frame.timestamp_ns
                 self._last_delivered_s = time.monotonic()
+                if self._frames_since_return is not None:
+                    self._frames_since_return += 1
                 if gap > 0:
                     self._result.frames_dropped += gap
                 item = (frame, machine, delivered)
@@ -567,11 +569,8 @@ class MeasurementLoop:
         first = self._outage_since is None
         if first:
             self._outage_since = now
-            settled = (
-                self._restored_s is None
-                or self._last_delivered_s - self._restored_s >= OUTAGE_SETTLE_S
-            )
-            if settled:
+            returned = self._frames_since_return
+            if returned is None or returned >= OUTAGE_SETTLE_FRAMES:
                 self._result.camera_outages += 1
         away_s = now - self._outage_since
         if away_s > self.camera_outage_timeout_s:
@@ -587,7 +586,7 @@ class MeasurementLoop:
         away_s = time.monotonic() - self._outage_since
         self._result.camera_outage_s += away_s
         self._outage_since = None
-        self._restored_s = time.monotonic()
+        self._frames_since_return = 0
         if frame.frame_id <= self._last_frame_id:
             self._last_frame_id = frame.frame_id - 1
         host_elapsed_ns = int((time.monotonic() - self._last_delivered_s) * 1e9)
