@@ -13,8 +13,8 @@
 Both place the gauge alike (`gauge_centre_for`): centred on the specimen detected in the
 reference frame (`appliance.measure.specimen_gauge`; on the image's centre when the specimen
 fills the view), or at `[gauge] centre_x_px`, `centre_y_px` along `[gauge] axis_deg` when
-both are configured. The simulated world's own
-knowledge of where the specimen is never places it.
+both are configured. The simulated world's own knowledge of where the specimen is never
+places it.
 
 `Rig.open` opens and configures them and prepares the triggering; `Rig.close` closes every
 device on every path, the trigger microcontroller's link included. `check_devices` runs the
