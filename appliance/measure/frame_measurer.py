@@ -9,6 +9,8 @@ replay on the recorded pixels reproduces the recorded strain exactly:
    `appliance.measure.painted_marks_tracker.PaintedDotTracker` (the same interface);
 2. their positions become strains (`appliance.measure.gauges.StrainGauges`); a zero request makes
    this frame's gauge lengths the new L0 first;
+   with `widths`, the specimen's width at stations between the axial marks
+   (`appliance.measure.edge_width.EdgeWidthGauge`) is measured in the same frame;
 3. the sample is *valid* when every axial gauge mark had a measured point and the force has
    not fallen as after a break (a frame of a broken specimen is not a strain);
 4. `ending` says whether the test is over: a break (a force drop; where the machine gives no
@@ -27,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from appliance.measure.edge_width import EdgeWidthGauge, WidthReading
 from appliance.measure.frame_windows import ImageWindow, cut_windows
 from appliance.measure.gauges import Calibration, StrainGauges, StrainGaugesLayout, StrainReading
 from appliance.measure.painted_marks import DotSettings
@@ -65,6 +68,8 @@ class StrainSample:
             one sample to the next is a gap in the strain series.
         image: the whole frame (shared, not a copy: read it, never write it).
         metadata: the frame's metadata (a simulator's ground truth, for instance).
+        width: the specimen's width at the stations between the axial marks
+            (`appliance.measure.edge_width`); None when the test measures no width.
     """
 
     index: int
@@ -86,6 +91,7 @@ class StrainSample:
     frames_dropped: int = 0
     image: np.ndarray | None = None
     metadata: Mapping[str, Any] = field(default_factory=dict)
+    width: WidthReading | None = None
 
     @property
     def points_lost(self) -> int:
@@ -151,6 +157,8 @@ class FrameMeasurer:
         reference_time_ns: device time of the reference frame, ns.
         break_detection: how a break is recognised.
         wall: wall clock, s, for the latency (injected for tests).
+        widths: the specimen's width at stations between the axial marks, measured in every
+            frame after the marks are tracked; None = no width.
     """
 
     def __init__(
@@ -161,9 +169,11 @@ class FrameMeasurer:
         *,
         break_detection: BreakDetection | None = None,
         wall: Callable[[], float] = time.perf_counter,
+        widths: EdgeWidthGauge | None = None,
     ) -> None:
         self.tracker = tracker
         self.gauges = gauges
+        self.widths = widths
         self.reference_time_ns = reference_time_ns
         self.detection = break_detection or BreakDetection()
         self._wall = wall
@@ -205,6 +215,10 @@ class FrameMeasurer:
             self.gauges.rezero(tracked.positions)
             self._zero_pending = False
         reading = self.gauges.read(tracked.positions)
+        width = None
+        if self.widths is not None:
+            first, second = (tracked.positions[mark].mean(axis=0) for mark in self._axial_marks)
+            width = self.widths.read(frame.image, first, second)
         measured = tracked.measured
         marks_seen = all(measured[mark].any() for mark in self._axial_marks)
         detection = self.detection
@@ -237,6 +251,7 @@ class FrameMeasurer:
             frames_dropped=frames_dropped,
             image=frame.image,
             metadata=frame.metadata,
+            width=width,
         )
         self.samples += 1
         self.valid_samples += sample.data_valid
