@@ -62,6 +62,7 @@ from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 from appliance.errors import InputError
+from appliance.measure.edge_width import EdgeWidthGauge
 from appliance.measure.frame_measurer import (
     BreakDetection,
     FrameMeasurer,
@@ -198,7 +199,8 @@ class MeasurementLoop:
         camera: an opened, configured and prepared camera (not armed).
         machine: an opened testing machine, or None.
         setup: called with the reference frame; returns the tracker and the strain gauges
-            (this is where the marks are placed).
+            (this is where the marks are placed), and optionally a third item, the width
+            gauge (`appliance.measure.edge_width.EdgeWidthGauge`, or None).
         sinks: called in order with every sample, on the publishing thread.
         immediate_sinks: called in order with every sample on the tracking thread, as soon
             as it is measured (fast, non-blocking work only).
@@ -227,7 +229,7 @@ class MeasurementLoop:
         self,
         camera: Camera,
         machine: TestingMachine | None,
-        setup: Callable[[Frame], tuple[MarkTracker, StrainGauges]],
+        setup: Callable[[Frame], tuple[Any, ...]],
         *,
         sinks: Sequence[Sink] = (),
         immediate_sinks: Sequence[Sink] = (),
@@ -307,7 +309,7 @@ class MeasurementLoop:
             self._last_frame_id = reference.frame_id
             self._last_timestamp_ns = reference.timestamp_ns
             self._last_delivered_s = time.monotonic()
-            tracker, gauges = call_in_control(
+            tracker, gauges, *width_gauge = call_in_control(
                 lambda: self.setup(reference), self.liveness_listeners
             )
         except InputError as exc:
@@ -325,7 +327,7 @@ class MeasurementLoop:
             threading.Thread(target=self._guard, args=("acquisition", self._acquire), daemon=True),
             threading.Thread(
                 target=self._guard,
-                args=("tracking", self._track, tracker, gauges, criteria),
+                args=("tracking", self._track, tracker, gauges, criteria, *width_gauge),
                 daemon=True,
             ),
             threading.Thread(target=self._guard, args=("publishing", self._publish), daemon=True),
@@ -622,13 +624,20 @@ class MeasurementLoop:
             self._emit(DeviceEvent("machine", self.machine.url, "restored", "readings again"))
         return state
 
-    def _track(self, tracker: MarkTracker, gauges: StrainGauges, criteria: StopCriteria) -> None:
+    def _track(
+        self,
+        tracker: MarkTracker,
+        gauges: StrainGauges,
+        criteria: StopCriteria,
+        widths: EdgeWidthGauge | None = None,
+    ) -> None:
         measurer = FrameMeasurer(
             tracker,
             gauges,
             self._reference_time_ns,
             break_detection=self.break_detection,
             wall=self._wall,
+            widths=widths,
         )
         try:
             while True:
