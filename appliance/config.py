@@ -185,6 +185,19 @@ class RunConfig:
 
 
 @dataclass(frozen=True)
+class TransverseConfig:
+    """[transverse]: the specimen's width from its edges, at stations between the axial marks.
+
+    `stations` = N measures the width in every frame at N stations along the gauge (at the
+    fractions 1/(N+1) ... N/(N+1) of the distance between the marks), each kept and their mean,
+    and from it the transverse strain, Poisson's ratio and, for a metal, the plastic strain
+    ratio r; 0 = no width measured.
+    """
+
+    stations: int = field(default=0, metadata=_range(0, 32))
+
+
+@dataclass(frozen=True)
 class SimConfig:
     """[sim]: the simulated world (used by sim:// devices only).
 
@@ -371,6 +384,7 @@ class Config:
     gauge: GaugeConfig = field(default_factory=GaugeConfig)
     run: RunConfig = field(default_factory=RunConfig)
     specimen: SpecimenConfig = field(default_factory=SpecimenConfig)
+    transverse: TransverseConfig = field(default_factory=TransverseConfig)
     sim: SimConfig = field(default_factory=SimConfig)
     record: RecordConfig = field(default_factory=RecordConfig)
     storage: StorageConfig = field(default_factory=StorageConfig)
