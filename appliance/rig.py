@@ -34,7 +34,14 @@ from appliance.devices.mcu_trigger import McuTriggerLine, connect_trigger_line
 from appliance.devices.polled_machine import PolledMachine
 from appliance.devices.trigger_stamping import TriggerStampedCamera
 from appliance.errors import InputError
-from appliance.measure.gauges import Calibration, StrainGaugesLayout, marks_outside, place_marks
+from appliance.measure.gauges import (
+    Calibration,
+    Gauge,
+    StrainGaugesLayout,
+    marks_outside,
+    place_marks,
+)
+from appliance.measure.painted_marks import DotSettings, PaintedMarksNotFound, find_dots
 from appliance.measure.specimen_detection import NothingStandsOut, SpecimenNotFound
 from appliance.measure.specimen_gauge import (
     CONFIGURED,
@@ -350,3 +357,29 @@ def speckle_marks(
         if beyond is not None:
             raise InputError(f"[gauge] length_mm: {beyond}")
     return points, layout
+
+
+def painted_marks(
+    image: np.ndarray, config: Config, source: str = "reference frame"
+) -> tuple[np.ndarray, StrainGaugesLayout, GaugeCentre]:
+    """The gauge between the two painted dots or lines of a reference image (`[gauge] marks`
+    "dots" or "lines"): their positions, one point per mark, and the centre and axis they
+    define. `source` names the image in a refusal.
+
+    Raises:
+        InputError: not exactly two marks (naming what was seen), or a transverse gauge asked.
+    """
+    kind = config.gauge.marks
+    if config.gauge.transverse_width_mm:
+        raise InputError(
+            f'[gauge] transverse_width_mm: no transverse gauge with [gauge] marks = "{kind}"'
+        )
+    try:
+        first, second = find_dots(image, DotSettings(kind=kind))
+    except PaintedMarksNotFound as exc:
+        raise InputError(f'{source}: {exc} ([gauge] marks = "{kind}")') from None
+    points = np.array([first.centre_px, second.centre_px])
+    dx, dy = points[1] - points[0]
+    axis_deg = float(np.degrees(np.arctan2(dy, dx)))
+    centre = GaugeCentre(tuple(points.mean(axis=0)), axis_deg, f"painted {kind}")
+    return points, StrainGaugesLayout(Gauge((0,), (1,)), None), centre

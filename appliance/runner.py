@@ -50,12 +50,10 @@ from appliance.errors import InputError
 from appliance.measure.frame_measurer import StopCriteria, StrainSample, tracker_and_gauges
 from appliance.measure.gauges import (
     Calibration,
-    Gauge,
     StrainGauges,
     StrainGaugesLayout,
 )
 from appliance.measure.image_quality import speckle_problem
-from appliance.measure.painted_marks import DotSettings, PaintedMarksNotFound, find_dots
 from appliance.measure.specimen_gauge import (
     IMAGE_CENTRE,
     GaugeCentre,
@@ -72,7 +70,7 @@ from appliance.plan.trigger_plan import (
 from appliance.recording.writer import McapRecorder
 from appliance.results.report_output import TestReport
 from appliance.results.series import cross_section_mm2
-from appliance.rig import Rig, rig_for, speckle_marks
+from appliance.rig import Rig, painted_marks, rig_for, speckle_marks
 from appliance.run.disk_space import DiskReserve, check_free_space
 from appliance.run.drops import DropWarning
 from appliance.run.loop import DeviceEvent, LoopResult, MeasurementLoop, call_in_control
@@ -411,7 +409,7 @@ class _Reference:
         g = config.gauge
         check_image_size(self.calibration, reference.image.shape[1], reference.image.shape[0])
         if g.marks in ("dots", "lines"):
-            points, layout, centre = _painted_marks(reference.image, config)
+            points, layout, centre = painted_marks(reference.image, config)
         else:
             points, layout, centre = self._placed_marks(reference)
         if rig.world is not None:
@@ -458,32 +456,6 @@ class _Reference:
         )
         _check_speckle(reference.image, points, layout.marks, config)
         return points, layout, centre
-
-
-def _painted_marks(
-    image: np.ndarray, config: Config
-) -> tuple[np.ndarray, StrainGaugesLayout, GaugeCentre]:
-    """The gauge between the two painted dots or lines of the reference frame (`[gauge] marks`
-    "dots" or "lines"): their positions, one point per mark, and the centre and axis they
-    define.
-
-    Raises:
-        InputError: not exactly two marks (naming what was seen), or a transverse gauge asked.
-    """
-    kind = config.gauge.marks
-    if config.gauge.transverse_width_mm:
-        raise InputError(
-            f'[gauge] transverse_width_mm: no transverse gauge with [gauge] marks = "{kind}"'
-        )
-    try:
-        first, second = find_dots(image, DotSettings(kind=kind))
-    except PaintedMarksNotFound as exc:
-        raise InputError(f'reference frame: {exc} ([gauge] marks = "{kind}")') from None
-    points = np.array([first.centre_px, second.centre_px])
-    dx, dy = points[1] - points[0]
-    axis_deg = float(np.degrees(np.arctan2(dy, dx)))
-    centre = GaugeCentre(tuple(points.mean(axis=0)), axis_deg, f"painted {kind}")
-    return points, StrainGaugesLayout(Gauge((0,), (1,)), None), centre
 
 
 def _check_speckle(

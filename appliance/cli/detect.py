@@ -11,7 +11,11 @@ The same placement a test makes on its reference frame (`appliance.rig.gauge_cen
   puts the gauge on the image's centre along `[gauge] axis_deg` (`gauge_placement`
   "image centre"), and says so;
 * with both keys set: the gauge there, along `[gauge] axis_deg` ("configured"); nothing is
-  detected, as in a test.
+  detected, as in a test;
+* with `[gauge] marks = "dots"` or `"lines"`: the two painted marks a test would track, found
+  as a test finds them (`appliance.rig.painted_marks`), and the gauge between them ("painted
+  dots", "painted lines"); no mark, one, or more than two is refused in one line, naming what
+  was seen.
 
 When the configuration gives the gauge length and a scale (`[optics]` or `[optics]
 calibration`), the gauge marks a test would place (each mark's centre) and the gauge length
@@ -26,18 +30,20 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from appliance.cli import arguments
 from appliance.cli.image_files import read_grey
 from appliance.cli.printing import print_json
 from appliance.config import Config
-from appliance.measure.gauges import Calibration
+from appliance.measure.gauges import Calibration, StrainGaugesLayout
 from appliance.measure.specimen_gauge import (
     CONFIGURED,
     IMAGE_CENTRE,
     GaugeCentre,
 )
 from appliance.plan.optics import configured_optics
-from appliance.rig import gauge_centre_in, speckle_marks
+from appliance.rig import gauge_centre_in, painted_marks, speckle_marks
 from appliance.run.object_plane import calibration_file, resolved_calibration_path
 
 PLACEMENT_NOTES = {
@@ -70,9 +76,15 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
 def detect_command(args: argparse.Namespace) -> int:
     """Run `detect`; exit status 0."""
     config = resolved_calibration_path(arguments.configuration(args.config, args), args.config)
-    place = gauge_centre_in(config, str(args.image))
-    image = read_grey(args.image)
-    centre = place(image)
+    if config.gauge.marks in ("dots", "lines"):
+        image = read_grey(args.image)
+        points, layout, centre = painted_marks(image, config, str(args.image))
+        document_marks = painted_gauge(config, points, layout, centre, image.shape)
+    else:
+        place = gauge_centre_in(config, str(args.image))
+        image = read_grey(args.image)
+        centre = place(image)
+        document_marks = gauge_marks(config, centre, image.shape)
     detection = centre.detection
     document: dict[str, Any] = {
         "image": str(args.image),
@@ -80,7 +92,7 @@ def detect_command(args: argparse.Namespace) -> int:
         "gauge_placement": centre.placement,
         "gauge_centre_px": [float(centre.centre_px[0]), float(centre.centre_px[1])],
         "gauge_axis_deg": float(centre.axis_deg),
-        "gauge": gauge_marks(config, centre, image.shape),
+        "gauge": document_marks,
     }
     if args.json:
         print_json(document, sys.stdout)
@@ -116,6 +128,33 @@ def gauge_marks(
         "length_mm": g.length_mm,
         "achieved_length_mm": float(achieved),
         "marks_px": marks,
+        "points_px": points.tolist(),
+    }
+
+
+def painted_gauge(
+    config: Config,
+    points: np.ndarray,
+    layout: StrainGaugesLayout,
+    centre: GaugeCentre,
+    shape: tuple[int, ...],
+) -> dict[str, Any]:
+    """The gauge between the two painted marks at `points` (px): their centres and, with a
+    scale, the gauge length they span (`length_mm` is then the configured length or None)."""
+    calibration = _calibration(config, (shape[1], shape[0]))
+    achieved: float | None = None
+    if calibration is not None:
+        if calibration.projection is not None:
+            achieved = layout.axial.length_mm(points, calibration.projection)
+        else:
+            achieved = layout.axial.length_px(points) * calibration.scale_mm_per_px
+    return {
+        "placement": centre.placement,
+        "centre_px": [float(centre.centre_px[0]), float(centre.centre_px[1])],
+        "axis_deg": float(centre.axis_deg),
+        "length_mm": config.gauge.length_mm,
+        "achieved_length_mm": achieved,
+        "marks_px": points.tolist(),
         "points_px": points.tolist(),
     }
 
@@ -162,9 +201,13 @@ def _print_text(document: dict[str, Any]) -> None:
     if gauge is None:
         rows.append(("gauge", "- (needs [gauge] length_mm and [optics] or a calibration)"))
     else:
+        length, achieved = gauge["length_mm"], gauge["achieved_length_mm"]
         rows += [
-            ("gauge_length_mm", f"{gauge['length_mm']:g}"),
-            ("gauge_length_achieved_mm", f"{gauge['achieved_length_mm']:.4f}"),
+            ("gauge_length_mm", "-" if length is None else f"{length:g}"),
+            (
+                "gauge_length_achieved_mm",
+                "- (needs [optics] or a calibration)" if achieved is None else f"{achieved:.4f}",
+            ),
         ]
         rows += [
             (f"mark_{n}_px", f"({x:.2f}, {y:.2f})")

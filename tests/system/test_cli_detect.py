@@ -148,3 +148,44 @@ def test_bad_input_is_refused_in_one_line(tmp_path, case, expected):
     assert done.returncode == 2, done.stderr
     assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr
     assert expected in done.stderr and done.stdout == ""
+
+
+def _painted_view(tmp_path, painted: str) -> tuple[object, np.ndarray]:
+    """A simulated rubber reference frame with `painted` marks ("dots" or "none"), saved, and
+    the true image positions of the two gauge ends."""
+    from appliance.sim.world import SimWorld
+    from hal.camera.base import Region
+
+    world = SimWorld(PRESETS["rubber"], painted_marks=painted, sensor_size=(512, 1024), seed=4)
+    scene = world.scene
+    image, _ = scene.render(0.0, 0.0, Region(0, 0, scene.sensor_width, scene.sensor_height))
+    path = tmp_path / f"painted_{painted}.png"
+    cv2.imwrite(str(path), np.clip(np.rint(image), 0, 255).astype(np.uint8))
+    half = 0.5 * world.gauge_length_mm
+    return path, scene.image_positions(np.array([[0.0, -half], [0.0, half]]), 0.0, 0.0)
+
+
+def test_detect_finds_the_painted_dots_a_test_would_track(tmp_path, capsys):
+    path, truth = _painted_view(tmp_path, "dots")
+    config = _config(tmp_path, 25.0, gauge='marks = "dots"\n')
+    assert main(["detect", str(path), "--config", str(config), "--json"]) == 0
+    document = json.loads(capsys.readouterr().out)
+    assert document["gauge_placement"] == "painted dots"
+    gauge = document["gauge"]
+    assert np.abs(np.array(gauge["marks_px"]) - truth).max() < 0.5
+    assert gauge["achieved_length_mm"] == pytest.approx(25.0, rel=0.01)
+    assert document["gauge_axis_deg"] == pytest.approx(90.0, abs=0.5)
+
+
+def test_detect_refuses_painted_marks_that_are_not_there(tmp_path):
+    path, _ = _painted_view(tmp_path, "none")
+    config = _config(tmp_path, 25.0, gauge='marks = "dots"\n')
+    done = subprocess.run(
+        [sys.executable, "-m", "appliance.cli", "detect", str(path), "--config", str(config)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr
+    assert f"{path}: no painted dot found" in done.stderr and done.stdout == ""
