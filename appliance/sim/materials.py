@@ -8,7 +8,8 @@ Every material here answers, for a bar pulled along its axis:
   `peak_stress_mpa`), accurate to about 1e-12 relative in lambda (1e-10 next to a metal's
   peak, where P is flat) by cubic Hermite interpolation of a dense table and Newton steps;
 * `stress_slope_mpa(stretch)`: the tangent dP/dlambda, MPa;
-* `lateral_stretch(stretch)`: the stretch lambda_t across the bar (width and thickness alike);
+* `lateral_stretch(stretch)`: the stretch lambda_t across the bar's width (a rubber's
+  thickness alike; a metal sheet's thickness by its plastic strain ratio r, ISO 10113);
 * `plastic_strain(stretch)` and `elastic_state(plastic_strain, nominal_stress_mpa)`: the
   permanent part of the deformation, and the state under a stress with that part frozen (the
   elastic unloading and reloading path);

@@ -29,9 +29,14 @@ class ElasticPlastic:
     """Elastic-plastic metal in uniaxial tension, Swift hardening, calibrated to Rp0.2 and Rm.
 
     Kinematics (true strain, additive): ln(lambda) = sigma / E + eps_p, with sigma the true
-    stress and eps_p the true plastic strain. Lateral stretch lambda_t = (1 - nu sigma / E)
-    exp(-eps_p / 2): elastic contraction with Poisson's ratio nu, plastic flow at constant
-    volume. Nominal stress P = sigma lambda_t^2.
+    stress and eps_p the true plastic strain. Width stretch lambda_w = (1 - nu sigma / E)
+    exp(-r eps_p / (1 + r)) and thickness stretch lambda_a = (1 - nu sigma / E)
+    exp(-eps_p / (1 + r)): elastic contraction with Poisson's ratio nu, plastic flow at
+    constant volume split between width and thickness by the plastic strain ratio
+    r = eps_w / eps_a (ISO 10113; r = 1 is an isotropic sheet, both contract alike). Nominal
+    stress P = sigma lambda_w lambda_a = sigma (1 - nu sigma / E)^2 exp(-eps_p), whatever r.
+    `lateral_stretch` and the lateral stretch of `loading_state` and `elastic_state` are the
+    width's (what a camera facing the sheet sees).
 
     Flow stress (Swift 1952): sigma_f = K (eps_0 + eps_p)^n for eps_p >= 0; the material is
     elastic below the initial yield stress K eps_0^n. K and n are solved so that the generated
@@ -51,6 +56,8 @@ class ElasticPlastic:
             elongation Ag. The specimen model places the extra elongation in a neck.
         swift_prestrain: eps_0 of the Swift law; sets how gradual yielding is (the initial
             yield stress is K eps_0^n).
+        plastic_anisotropy: r, the plastic strain ratio of the sheet along the pulling
+            direction (width over thickness true plastic strain, ISO 10113), > 0.
         hardening_exponent: n, solved (not an argument).
         swift_coefficient_mpa: K, MPa, solved (not an argument).
 
@@ -64,6 +71,7 @@ class ElasticPlastic:
     tensile_strength_mpa: float
     elongation_after_fracture: float
     swift_prestrain: float = 0.002
+    plastic_anisotropy: float = 1.0
     hardening_exponent: float = field(init=False)
     swift_coefficient_mpa: float = field(init=False)
 
@@ -76,6 +84,7 @@ class ElasticPlastic:
             "tensile_strength_mpa",
             "elongation_after_fracture",
             "swift_prestrain",
+            "plastic_anisotropy",
         ):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -98,8 +107,11 @@ class ElasticPlastic:
 
     @classmethod
     def steel_s355(cls) -> ElasticPlastic:
-        """A structural steel like S355 (EN 10025-2): E = 210 GPa, nu = 0.3, Rp0.2 = 355 MPa,
-        Rm = 510 MPa, A = 25 %; continuous yielding (no upper yield point or Lueders band).
+        """A steel sheet with the strength of S355 (EN 10025-2): E = 210 GPa, nu = 0.3,
+        Rp0.2 = 355 MPa, Rm = 510 MPa, A = 25 %; continuous yielding (no upper yield point or
+        Lueders band); a plastic strain ratio r = 1.8, a cold-rolled deep-drawing sheet's
+        (DC04 has 1.6 to 2), so that the width and the thickness contract differently and
+        r is measurable (a hot-rolled S355 plate is about isotropic, r near 1).
 
         The calibrated Swift law has n = 0.140, giving Agt = 15.1 % and Ag = 14.9 %.
         """
@@ -109,6 +121,7 @@ class ElasticPlastic:
             proof_stress_mpa=355.0,
             tensile_strength_mpa=510.0,
             elongation_after_fracture=0.25,
+            plastic_anisotropy=1.8,
         )
 
     def _swift_stress(
@@ -327,15 +340,28 @@ class ElasticPlastic:
         plastic = self._plastic_of_sigma(sigma)
         stretch = np.exp(sigma / self.youngs_modulus_mpa + plastic)
         lateral = (1.0 - self.poisson_ratio * sigma / self.youngs_modulus_mpa) * np.exp(
-            -0.5 * plastic
+            -self.width_share * plastic
         )
         return stretch, lateral, plastic
 
+    @property
+    def width_share(self) -> float:
+        """r / (1 + r): the share of the plastic axial strain the width gives up (the
+        thickness gives up the rest)."""
+        return self.plastic_anisotropy / (1.0 + self.plastic_anisotropy)
+
     def lateral_stretch(self, stretch: npt.ArrayLike) -> FloatArray:
-        """Lateral stretch (1 - nu sigma / E) exp(-eps_p / 2) under monotone loading."""
+        """Width stretch (1 - nu sigma / E) exp(-r eps_p / (1 + r)) under monotone loading."""
         sigma = self._sigma_of_stretch(stretch)
         return (1.0 - self.poisson_ratio * sigma / self.youngs_modulus_mpa) * np.exp(
-            -0.5 * self._plastic_of_sigma(sigma)
+            -self.width_share * self._plastic_of_sigma(sigma)
+        )
+
+    def thickness_stretch(self, stretch: npt.ArrayLike) -> FloatArray:
+        """Thickness stretch (1 - nu sigma / E) exp(-eps_p / (1 + r)) under monotone loading."""
+        sigma = self._sigma_of_stretch(stretch)
+        return (1.0 - self.poisson_ratio * sigma / self.youngs_modulus_mpa) * np.exp(
+            -(1.0 - self.width_share) * self._plastic_of_sigma(sigma)
         )
 
     def plastic_strain(self, stretch: npt.ArrayLike) -> FloatArray:
@@ -348,7 +374,8 @@ class ElasticPlastic:
         """(axial stretch, lateral stretch) under the nominal stress P with eps_p frozen.
 
         Solves sigma (1 - nu sigma / E)^2 = P exp(eps_p) for the true stress, then
-        lambda = exp(sigma / E + eps_p), lambda_t = (1 - nu sigma / E) exp(-eps_p / 2). Valid
+        lambda = exp(sigma / E + eps_p), the width's lambda_t = (1 - nu sigma / E)
+        exp(-r eps_p / (1 + r)). Valid
         while sigma stays at or below the section's flow stress (unloading, reloading).
         """
         plastic, stress = np.broadcast_arrays(
@@ -361,5 +388,5 @@ class ElasticPlastic:
         contraction = 1.0 - self.poisson_ratio * sigma / self.youngs_modulus_mpa
         return (
             np.exp(sigma / self.youngs_modulus_mpa + plastic),
-            contraction * np.exp(-0.5 * plastic),
+            contraction * np.exp(-self.width_share * plastic),
         )

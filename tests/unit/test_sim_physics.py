@@ -120,13 +120,35 @@ def test_metal_inverse_and_lateral_stretch():
     small = 1e-5
     assert (1.0 - steel.lateral_stretch(1.0 + small)) / small == pytest.approx(0.3, rel=1e-4)
     plastic_stretch = 1.1
-    sigma = steel.nominal_stress_mpa(plastic_stretch) / steel.lateral_stretch(plastic_stretch) ** 2
-    volume = plastic_stretch * steel.lateral_stretch(plastic_stretch) ** 2
+    area = steel.lateral_stretch(plastic_stretch) * steel.thickness_stretch(plastic_stretch)
+    sigma = steel.nominal_stress_mpa(plastic_stretch) / area
+    volume = plastic_stretch * area
     expected = np.exp(sigma / 210_000.0) * (1.0 - 0.3 * sigma / 210_000.0) ** 2
     assert volume == pytest.approx(expected, rel=1e-12)
-    unloaded, lateral = steel.elastic_state(steel.plastic_strain(plastic_stretch), 0.0)
-    assert unloaded == pytest.approx(np.exp(steel.plastic_strain(plastic_stretch)))
-    assert unloaded * lateral**2 == pytest.approx(1.0, rel=1e-12)
+    plastic = steel.plastic_strain(plastic_stretch)
+    unloaded, lateral = steel.elastic_state(plastic, 0.0)
+    assert unloaded == pytest.approx(np.exp(plastic))
+    assert lateral == pytest.approx(unloaded ** (-1.8 / 2.8), rel=1e-12)
+
+
+def test_the_metal_sheet_gives_up_width_and_thickness_by_its_plastic_strain_ratio():
+    steel = ElasticPlastic.steel_s355()
+    assert steel.plastic_anisotropy == 1.8
+    stretch = np.array([1.02, 1.05, 1.1, steel.stretch_at_peak])
+    width = np.log(steel.lateral_stretch(stretch))
+    thickness = np.log(steel.thickness_stretch(stretch))
+    elastic = np.log(
+        1.0
+        - 0.3
+        * steel.nominal_stress_mpa(stretch)
+        / (210_000.0 * np.exp(-steel.plastic_strain(stretch)))
+    )
+    ratio = (width - elastic) / (thickness - elastic)
+    np.testing.assert_allclose(ratio, 1.8, rtol=1e-3)
+    isotropic = ElasticPlastic(210_000.0, 0.3, 355.0, 510.0, 0.25)
+    np.testing.assert_allclose(
+        isotropic.nominal_stress_mpa(stretch), steel.nominal_stress_mpa(stretch), rtol=1e-12
+    )
 
 
 def test_metal_rejects_impossible_properties():
