@@ -47,6 +47,7 @@ import numpy as np
 from appliance import __version__
 from appliance.config import Config
 from appliance.errors import InputError
+from appliance.measure.edge_width import EdgesNotFound, EdgeWidthGauge, edge_width_gauge
 from appliance.measure.frame_measurer import StopCriteria, StrainSample, tracker_and_gauges
 from appliance.measure.gauges import (
     Calibration,
@@ -402,8 +403,11 @@ class _Reference:
         self.points_placed = 0
         self.placement: dict[str, Any] = {}
 
-    def place_marks(self, reference: Frame) -> tuple[MarkTracker, StrainGauges]:
-        """The loop's set-up: marks on the reference frame, tracker and gauges on them."""
+    def place_marks(
+        self, reference: Frame
+    ) -> tuple[MarkTracker, StrainGauges, EdgeWidthGauge | None]:
+        """The loop's set-up: marks on the reference frame, tracker and gauges on them, and
+        the width gauge between the axial marks when `[transverse] stations` asks for one."""
         arrived_unix_ns = time.time_ns()
         config, rig = self.config, self.rig
         g = config.gauge
@@ -418,7 +422,11 @@ class _Reference:
         tracker, gauges = tracker_and_gauges(
             config.tracking, reference.image, points, layout, self.calibration, g.marks
         )
+        widths = _width_gauge(reference.image, points, layout, self.calibration, config, centre)
         self.placement = {**centre.facts(), "gauge_length_achieved_mm": gauges.gauge_length_mm}
+        if widths is not None:
+            self.placement["width_stations"] = widths.count
+            self.placement["reference_widths_mm"] = list(widths.reference_widths_mm)
         self.facts.update(self.placement)
         exposure_end_ns = reference.timestamp_ns + int(round(reference.exposure_us * 1e3))
         run_facts = RunFacts(
@@ -445,7 +453,7 @@ class _Reference:
                 f"centred on the image along [gauge] axis_deg = {centre.axis_deg:g}; set "
                 "[gauge] centre_x_px and centre_y_px if the specimen is elsewhere"
             )
-        return tracker, gauges
+        return tracker, gauges, widths
 
     def _placed_marks(self, reference: Frame) -> tuple[np.ndarray, StrainGaugesLayout, GaugeCentre]:
         """Speckle marks placed on the gauge centre of the reference frame, checked."""
@@ -456,6 +464,31 @@ class _Reference:
         )
         _check_speckle(reference.image, points, layout.marks, config)
         return points, layout, centre
+
+
+def _width_gauge(
+    image: np.ndarray,
+    points: np.ndarray,
+    layout: StrainGaugesLayout,
+    calibration: Calibration,
+    config: Config,
+    centre: GaugeCentre,
+) -> EdgeWidthGauge | None:
+    """The width gauge between the axial marks (`[transverse] stations`); None when none.
+
+    Raises:
+        InputError: no station's edges are found in the reference frame.
+    """
+    count = config.transverse.stations
+    if count == 0:
+        return None
+    first, second = (
+        points[list(mark)].mean(axis=0) for mark in (layout.axial.first, layout.axial.second)
+    )
+    try:
+        return edge_width_gauge(image, first, second, calibration, count, centre.detection)
+    except EdgesNotFound as exc:
+        raise InputError(f"[transverse] stations: reference frame: {exc}") from None
 
 
 def _check_speckle(
