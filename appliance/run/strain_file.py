@@ -3,7 +3,10 @@
 Columns (units in the names): sample index, camera frame id, device time, exposure, the
 strains, elongation and current gauge length, the data-valid flag, points lost in the frame,
 reference updates, the frames dropped so far in the test (a rise is a gap in the series), the
-controller's crosshead position and force, and the processing latency;
+controller's crosshead position and force, and the processing latency; with the width
+measured at N stations (`[transverse] stations`), the mean width `width_mm`, the transverse
+strain from it `width_transverse_strain`, the stations seen `width_stations_seen` and each
+station's width `width_1_mm` ... `width_N_mm` (empty where a station is flagged);
 then any extra columns the caller adds (a simulation's ground truth, for instance). Every row
 is written to the file as it is measured, whole: a run that ends abruptly keeps every sample
 measured before, and a write that fails (a full disk) leaves no partial row behind.
@@ -70,6 +73,29 @@ def sample_row(sample: StrainSample) -> dict[str, Any]:
     }
 
 
+def width_columns(stations: int) -> tuple[str, ...]:
+    """The columns of the width measured at `stations` stations (none when 0)."""
+    if stations == 0:
+        return ()
+    each = tuple(f"width_{k}_mm" for k in range(1, stations + 1))
+    return ("width_mm", "width_transverse_strain", "width_stations_seen", *each)
+
+
+def width_row(sample: StrainSample, stations: int) -> dict[str, Any]:
+    """The width columns of one sample (NaN where nothing was measured)."""
+    width = sample.width
+    if width is None:
+        return dict.fromkeys(width_columns(stations), math.nan)
+    row: dict[str, Any] = {
+        "width_mm": width.mean_width_mm,
+        "width_transverse_strain": width.transverse_strain,
+        "width_stations_seen": width.stations_seen,
+    }
+    for k, value in enumerate(width.widths_mm, start=1):
+        row[f"width_{k}_mm"] = value
+    return row
+
+
 class StrainFileError(RuntimeError):
     """A row could not be written; names the file and the cause, and how many rows it keeps."""
 
@@ -87,6 +113,7 @@ class StrainCsvWriter:
         extra_columns: names of additional columns, after the standard ones.
         extras: returns the values of the extra columns for a sample.
         on_no_space: called when the disk is full; returns True when it freed room.
+        width_stations: the stations the width is measured at (`width_columns`); 0 = none.
 
     Attributes:
         rows: the rows written so far (the header not counted).
@@ -102,13 +129,17 @@ class StrainCsvWriter:
         extras: Callable[[StrainSample], Mapping[str, Any]] | None = None,
         *,
         on_no_space: Callable[[], bool] | None = None,
+        width_stations: int = 0,
     ) -> None:
         self.path = Path(path)
+        self._width_stations = width_stations
         self.rows = 0
         self._extras = extras
         self._on_no_space = on_no_space
         self._text = io.StringIO()
-        self._csv = csv.DictWriter(self._text, fieldnames=[*COLUMNS, *extra_columns])
+        self._csv = csv.DictWriter(
+            self._text, fieldnames=[*COLUMNS, *width_columns(width_stations), *extra_columns]
+        )
         self._file = self.path.open("wb", buffering=0)
         self._size = 0
         self._csv.writeheader()
@@ -120,6 +151,8 @@ class StrainCsvWriter:
 
     def __call__(self, sample: StrainSample) -> None:
         row = sample_row(sample)
+        if self._width_stations:
+            row.update(width_row(sample, self._width_stations))
         if self._extras is not None:
             row.update(self._extras(sample))
         self._csv.writerow({k: _format(v) for k, v in row.items()})
