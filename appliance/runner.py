@@ -202,6 +202,7 @@ def run_test(
                 files.strain,
                 samples if simulate else None,
                 faults.disk_full(reserve, files.strain, recorder),
+                config.transverse.stations,
             )
     except BaseException:
         if recorder is not None:
@@ -613,13 +614,23 @@ def _end_outputs(outputs: list[RunOutput], result: LoopResult) -> None:
 
 
 def _strain_file(
-    path: Path, samples: _SampleLog | None, on_no_space: Callable[[], bool]
+    path: Path,
+    samples: _SampleLog | None,
+    on_no_space: Callable[[], bool],
+    width_stations: int = 0,
 ) -> StrainCsvWriter:
-    """The strain file, with the truth columns of a simulated test."""
+    """The strain file, with the width's columns when it is measured and the truth columns
+    of a simulated test."""
     try:
         if samples is None:
-            return StrainCsvWriter(path, on_no_space=on_no_space)
-        return StrainCsvWriter(path, TRUTH_COLUMNS, samples.truth_columns, on_no_space=on_no_space)
+            return StrainCsvWriter(path, on_no_space=on_no_space, width_stations=width_stations)
+        return StrainCsvWriter(
+            path,
+            TRUTH_COLUMNS,
+            samples.truth_columns,
+            on_no_space=on_no_space,
+            width_stations=width_stations,
+        )
     except StrainFileError as exc:
         raise InputError(str(exc)) from None
     except OSError as exc:
