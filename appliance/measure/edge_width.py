@@ -185,7 +185,7 @@ class EdgeWidthGauge:
                 widths.append(math.nan)
                 seen.append(False)
                 continue
-            station.left_px, station.right_px = found[0], found[1]
+            station.left_px, station.right_px = float(found[0]), float(found[1])
             width = self._width_mm(first, second, station)
             widths.append(width)
             seen.append(math.isfinite(width))
@@ -202,7 +202,7 @@ class EdgeWidthGauge:
     def _width_mm(self, first: np.ndarray, second: np.ndarray, station: _Station) -> float:
         centre, across = _frame_of(first, second, station.fraction)
         if self.calibration.projection is None:
-            return (station.right_px - station.left_px) * self.calibration.scale_mm_per_px
+            return float(station.right_px - station.left_px) * self.calibration.scale_mm_per_px
         points = np.array([centre + station.left_px * across, centre + station.right_px * across])
         try:
             plane = self.calibration.projection.to_plane_mm(points)
