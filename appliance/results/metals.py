@@ -44,6 +44,9 @@ of the broken specimen is not valid). Each result names the samples it was taken
   only when the test ran to the break; it is the standard's A only when the fracture lies
   between the gauge marks.
 
+After these, a sheet's Poisson's ratio nu, plastic strain ratio r (ISO 10113) and strain
+hardening exponent n (ISO 10275): `appliance.results.sheet_metal`.
+
 Ag, A and Rp0.2 all take the strain from the elastic line's zero (R0 its stress at e = 0), so
 a strain offset at the start of the test (slack taken up, a toe) does not move them.
 
@@ -61,6 +64,7 @@ import numpy as np
 
 from appliance.results.result import Result, TestResults
 from appliance.results.series import TestSeries, why_no_stress
+from appliance.results.sheet_metal import sheet_missing, sheet_results
 
 RM_DROP_FRACTION = 0.005
 YIELD_DROP_FRACTION = 0.01
@@ -112,7 +116,8 @@ def metal_results(
     """
     reason = why_no_stress(series, cross_section_mm2)
     if reason is not None:
-        return TestResults(STANDARD, cross_section_mm2, [_missing(s, reason) for s in _ORDER], MAIN)
+        missing = [_missing(s, reason) for s in _ORDER]
+        return TestResults(STANDARD, cross_section_mm2, [*missing, *sheet_missing(reason)], MAIN)
     assert cross_section_mm2 is not None
     usable = series.valid & np.isfinite(series.force_n) & np.isfinite(series.strain)
     curve = _Curve(
@@ -123,7 +128,8 @@ def metal_results(
     found.update(curve.modulus_and_proof(found.get("ReH")))
     found["Ag"] = curve.plastic_extension_at_maximum(found["Rm"], found["E"])
     found["A"] = curve.elongation_after_fracture(found["E"], broke)
-    return TestResults(STANDARD, cross_section_mm2, [found[s] for s in _ORDER], MAIN)
+    sheet = sheet_results(series, cross_section_mm2, found["E"], int(curve.index[curve.peak]))
+    return TestResults(STANDARD, cross_section_mm2, [*(found[s] for s in _ORDER), *sheet], MAIN)
 
 
 class _Curve:

@@ -33,6 +33,10 @@ class TestSeries:
         frames_dropped: camera frames dropped so far in the test.
         truth_strain: the true engineering strain of a simulated test (scoring only; NaN
             where unknown).
+        transverse_strain: the transverse engineering strain: from the specimen's width at
+            its edges when measured (`[transverse] stations`), else the transverse gauge's;
+            None when the test measured neither.
+        transverse_source: where `transverse_strain` comes from, for the results' bases.
     """
 
     index: np.ndarray
@@ -43,6 +47,8 @@ class TestSeries:
     points_lost: np.ndarray
     frames_dropped: np.ndarray
     truth_strain: np.ndarray
+    transverse_strain: np.ndarray | None = None
+    transverse_source: str = ""
 
     @classmethod
     def of(
@@ -52,8 +58,10 @@ class TestSeries:
         *,
         time_s: np.ndarray | None = None,
         valid: np.ndarray | None = None,
+        transverse_strain: np.ndarray | None = None,
     ) -> TestSeries:
-        """A series of strain and force alone (every sample valid, no loss, no truth)."""
+        """A series of strain and force alone (every sample valid, no loss, no truth), with
+        a transverse strain when given."""
         strain = np.asarray(strain, np.float64)
         n = strain.size
         return cls(
@@ -65,6 +73,10 @@ class TestSeries:
             points_lost=np.zeros(n, np.int64),
             frames_dropped=np.zeros(n, np.int64),
             truth_strain=np.full(n, math.nan),
+            transverse_strain=(
+                None if transverse_strain is None else np.asarray(transverse_strain, np.float64)
+            ),
+            transverse_source="" if transverse_strain is None else "given",
         )
 
     def __len__(self) -> int:
@@ -92,11 +104,20 @@ class SeriesRecorder:
     def __init__(self, truth: Callable[[StrainSample], tuple[float, float]] | None = None) -> None:
         self._truth = truth
         self._rows: list[tuple[float, ...]] = []
+        self._transverse: list[float] = []
+        self._sources: set[str] = set()
 
     def add(self, sample: StrainSample) -> None:
         """Record one sample."""
         machine = sample.machine
         true_strain = self._truth(sample)[0] if self._truth is not None else math.nan
+        if sample.width is not None:
+            self._sources.add("the specimen's width at its edges")
+            self._transverse.append(sample.width.transverse_strain)
+        else:
+            if math.isfinite(sample.reading.transverse_strain):
+                self._sources.add("the transverse gauge")
+            self._transverse.append(sample.reading.transverse_strain)
         self._rows.append(
             (
                 sample.index,
@@ -122,6 +143,8 @@ class SeriesRecorder:
             points_lost=columns[5].astype(np.int64),
             frames_dropped=columns[6].astype(np.int64),
             truth_strain=columns[7],
+            transverse_strain=np.array(self._transverse, np.float64) if self._sources else None,
+            transverse_source=" and ".join(sorted(self._sources)),
         )
 
 
