@@ -54,6 +54,8 @@ from pymodbus.client.mixin import ModbusClientMixin
 from appliance.run.state import ExitStatus, RunState
 
 WordOrder = Literal["big", "little"]
+WIDTH_STATIONS_SERVED = 8
+"""Stations whose widths have registers of their own."""
 Value = int | float
 
 _DATATYPE = ModbusClientMixin.DATATYPE
@@ -420,9 +422,69 @@ REGISTER_MAP: tuple[Register, ...] = (
         "counter and frames the appliance had no time for; each is a gap in the strain series",
     ),
     Register(
-        "reserved",
+        "width_mm",
         33,
-        67,
+        2,
+        RegisterType.FLOAT32,
+        Access.READ,
+        "mm",
+        "Specimen width at its edges, the mean of the stations seen (`[transverse] stations`; "
+        "NaN when no width is measured or no station is seen)",
+    ),
+    Register(
+        "width_transverse_strain",
+        35,
+        2,
+        RegisterType.FLOAT32,
+        Access.READ,
+        "1",
+        "Transverse engineering strain from the width, the mean of each seen station's "
+        "w / w0 - 1 (NaN as `width_mm`)",
+    ),
+    Register(
+        "width_stations_seen",
+        37,
+        1,
+        RegisterType.UINT16,
+        Access.READ,
+        "",
+        "Stations whose two edges were located in the latest sample (0 without a width)",
+    ),
+    Register(
+        "width_stations",
+        38,
+        1,
+        RegisterType.UINT16,
+        Access.READ,
+        "",
+        "Stations the width is measured at (`[transverse] stations`; 0 = none)",
+    ),
+    Register(
+        "width_poisson_ratio",
+        39,
+        2,
+        RegisterType.FLOAT32,
+        Access.READ,
+        "1",
+        "Poisson's ratio from the width, -width_transverse_strain / e_axial (NaN below 1e-4 "
+        "axial strain or without a width)",
+    ),
+    *(
+        Register(
+            f"width_{k}_mm",
+            39 + 2 * k,
+            2,
+            RegisterType.FLOAT32,
+            Access.READ,
+            "mm",
+            f"Width at station {k} from the first mark (NaN where it is flagged or not measured)",
+        )
+        for k in range(1, WIDTH_STATIONS_SERVED + 1)
+    ),
+    Register(
+        "reserved",
+        57,
+        43,
         RegisterType.RESERVED,
         Access.READ,
         "",
@@ -471,6 +533,8 @@ BY_NAME: Mapping[str, Register] = {register.name: register for register in REGIS
 MAP_SIZE = REGISTER_MAP[-1].end
 """Registers from address 0 to the end of the map."""
 
+WIDTH_BLOCK: tuple[Register, ...] = tuple(r for r in REGISTER_MAP if r.name.startswith("width_"))
+"""The specimen's width at its edges (33 ... 56), rewritten with every sample."""
 MEASUREMENT_BLOCK: tuple[Register, ...] = tuple(
     r for r in REGISTER_MAP if r.end <= BY_NAME["exit_status"].address
 )

@@ -104,12 +104,14 @@ from appliance.live.modbus_map import (
     REGISTER_MAP,
     RUN_STATE_CODES,
     SERVED_FUNCTION_CODES,
+    WIDTH_BLOCK,
     CommandResult,
     Register,
     RegisterType,
     StatusBit,
 )
 from appliance.live.throttled_log import ThrottledLog
+from appliance.measure.gauges import POISSON_MIN_AXIAL_STRAIN
 from appliance.run.state import ExitStatus, RunState
 
 if TYPE_CHECKING:
@@ -134,6 +136,36 @@ _SAMPLE_BLOCK = tuple(
     r for r in MEASUREMENT_BLOCK if r.name not in ("status", "heartbeat", "run_state")
 )
 _VALID_STATES = (RunState.RUNNING, RunState.STOPPING)
+
+
+def _width_values(sample: StrainSample) -> dict[str, float | int]:
+    """The width registers' values of a sample (NaN and 0 without a width)."""
+    width = sample.width
+    values: dict[str, float | int] = {
+        f"width_{k}_mm": math.nan for k in range(1, modbus_map.WIDTH_STATIONS_SERVED + 1)
+    }
+    if width is None:
+        return {
+            **values,
+            "width_mm": math.nan,
+            "width_transverse_strain": math.nan,
+            "width_stations_seen": 0,
+            "width_stations": 0,
+            "width_poisson_ratio": math.nan,
+        }
+    axial = sample.reading.engineering_strain
+    transverse = width.transverse_strain
+    poisson = -transverse / axial if abs(axial) >= POISSON_MIN_AXIAL_STRAIN else math.nan
+    for k, value in enumerate(width.widths_mm[: modbus_map.WIDTH_STATIONS_SERVED], start=1):
+        values[f"width_{k}_mm"] = value
+    return {
+        **values,
+        "width_mm": width.mean_width_mm,
+        "width_transverse_strain": transverse,
+        "width_stations_seen": width.stations_seen,
+        "width_stations": len(width.widths_mm),
+        "width_poisson_ratio": poisson,
+    }
 
 
 class ServerStartError(InputError):
@@ -229,6 +261,7 @@ class StrainRegisterServer:
         self._run_state_at = BY_NAME["run_state"].address
         self._exit_status_at = BY_NAME["exit_status"].address
         self._sample_parts = self._contiguous_parts(_SAMPLE_BLOCK)
+        self._width_parts = self._contiguous_parts(WIDTH_BLOCK)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._servers: list[_SerialServer] = []
@@ -238,7 +271,7 @@ class StrainRegisterServer:
         self._decoder = DecodePDU(True)
         self._log = ThrottledLog(_log)
         self._closed = False
-        for register in MEASUREMENT_BLOCK:
+        for register in (*MEASUREMENT_BLOCK, *WIDTH_BLOCK):
             if register.data_type is RegisterType.FLOAT32:
                 self._put(register, math.nan)
         self._put(BY_NAME["gauge_length_setpoint_mm"], gauge_length_setpoint_mm)
@@ -332,9 +365,10 @@ class StrainRegisterServer:
             "points_lost": lost,
             "latency_ms": sample.latency_s * 1e3,
         }
+        values.update(_width_values(sample))
         parts = [
             (start, modbus_map.encode_block(block, values, self._word_order))
-            for start, block in self._sample_parts
+            for start, block in (*self._sample_parts, *self._width_parts)
         ]
         bits = StatusBit(0)
         if machine is None:

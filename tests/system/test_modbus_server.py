@@ -30,6 +30,7 @@ from appliance.errors import InputError
 from appliance.live import modbus_map
 from appliance.live.modbus_map import BY_NAME, RUN_STATE_CODES, StatusBit
 from appliance.live.modbus_server import ServerStartError, StrainRegisterServer
+from appliance.measure.edge_width import WidthReading
 from appliance.measure.tracking import TrackStatus
 from appliance.run.state import ExitStatus, RunState
 from hal.machine.base import MachineState
@@ -292,7 +293,8 @@ def test_read_only_and_unmapped_addresses_refuse_writes(serve, commands):
         assert "Illegal data address" in failure, address
     whole = mbpoll_read_tcp(port, "-r", "0", "-c", "105", "-t", "4")
     assert len(whole) == 105
-    assert all(whole[address] == "0" for address in range(30, 100))
+    assert all(whole[address] == "0" for address in (*range(30, 33), *range(57, 100)))
+    assert whole[37] == whole[38] == "0"
     assert "Illegal data address" in _failure(mbpoll_tcp(port, "-1", "-r", "104", "-c", "2"))
     assert "Illegal function" in _failure(mbpoll_tcp(port, "-1", "-r", "100", "-t", "0"))
     assert commands.calls == []
@@ -561,3 +563,30 @@ def test_the_registers_count_drops_and_flag_the_sample_after_a_gap(commands):
     server.set_run_state(RunState.ARMED)
     assert modbus_map.decode(counter, server.read_registers(counter.address, counter.count)) == 0
     server.close()
+
+
+@needs_mbpoll
+def test_the_width_registers_carry_each_station_and_read_nan_without_a_width(serve):
+    server, port = serve()
+    _published(server)
+    empty = _floats(mbpoll_read_tcp(port, "-r", "33", "-c", "2", "-t", "4:float", "-B"))
+    assert all(math.isnan(value) for value in empty.values())
+    assert mbpoll_read_tcp(port, "-r", "37", "-c", "2", "-t", "4") == {37: "0", 38: "0"}
+    width = WidthReading(
+        widths_mm=(12.25, math.nan, 12.5),
+        seen=(True, False, True),
+        mean_width_mm=12.375,
+        transverse_strain=-0.01,
+    )
+    server.set_run_state(RunState.RUNNING)
+    server.publish(
+        dataclasses.replace(make_sample(machine=MACHINE, strain=0.04), width=width), make_facts()
+    )
+    mean = _floats(mbpoll_read_tcp(port, "-r", "33", "-c", "2", "-t", "4:float", "-B"))
+    assert mean == {33: pytest.approx(12.375), 35: pytest.approx(-0.01, rel=1e-6)}
+    assert mbpoll_read_tcp(port, "-r", "37", "-c", "2", "-t", "4") == {37: "2", 38: "3"}
+    poisson = _floats(mbpoll_read_tcp(port, "-r", "39", "-t", "4:float", "-B"))
+    assert poisson == {39: pytest.approx(0.25, rel=1e-6)}
+    stations = _floats(mbpoll_read_tcp(port, "-r", "41", "-c", "8", "-t", "4:float", "-B"))
+    assert stations[41] == pytest.approx(12.25) and stations[45] == pytest.approx(12.5)
+    assert math.isnan(stations[43]) and all(math.isnan(stations[a]) for a in range(47, 57, 2))

@@ -69,8 +69,17 @@ def test_fixed_block_and_command_block_are_at_the_documented_addresses():
     assert (exit_status.address, exit_status.count, exit_status.access) == (30, 1, Access.READ)
     dropped = BY_NAME["frames_dropped"]
     assert (dropped.address, dropped.count, dropped.data_type) == (31, 2, RegisterType.UINT32)
+    width = [(r.name, r.address, r.count) for r in modbus_map.WIDTH_BLOCK]
+    assert width[:5] == [
+        ("width_mm", 33, 2),
+        ("width_transverse_strain", 35, 2),
+        ("width_stations_seen", 37, 1),
+        ("width_stations", 38, 1),
+        ("width_poisson_ratio", 39, 2),
+    ]
+    assert width[5:] == [(f"width_{k}_mm", 39 + 2 * k, 2) for k in range(1, 9)]
     reserved = BY_NAME["reserved"]
-    assert (reserved.address, reserved.end, reserved.access) == (33, 100, Access.READ)
+    assert (reserved.address, reserved.end, reserved.access) == (57, 100, Access.READ)
     writable = {r.name for r in REGISTER_MAP if r.writable}
     assert writable == {"command", "gauge_length_setpoint_mm"}
     assert BY_NAME["command"].choices == (1, 2, 3)
