@@ -50,6 +50,14 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     _add_out(results, required=True)
     results.set_defaults(handler=_results)
 
+    transverse = benches.add_parser(
+        "transverse",
+        help="the specimen's width at its edges and r (ISO 10113) against the simulated sheet",
+    )
+    transverse.add_argument("--quick", action="store_true", help="one seed")
+    _add_out(transverse, required=True)
+    transverse.set_defaults(handler=_transverse)
+
     modbus = benches.add_parser(
         "modbus", help="latency from frame delivery to Modbus register update (10 points)"
     )
@@ -227,6 +235,12 @@ def _results(args: argparse.Namespace) -> int:
     from appliance.bench.results_accuracy import run_results_benchmark
 
     return run_results_benchmark(args.out, quick=args.quick)
+
+
+def _transverse(args: argparse.Namespace) -> int:
+    from appliance.bench.transverse import run_transverse_benchmark
+
+    return run_transverse_benchmark(args.out, quick=args.quick)
 
 
 def _modbus(args: argparse.Namespace) -> int:
