@@ -12,6 +12,8 @@ Subcommands, each parsed and handled in its own module of this package:
     replay         measure a recorded test again from its recorded pixels.
     info           summarise a recording and check its integrity.
     camera-check   grab frames from a camera and report size, format, rate and losses.
+    preview        stream the live camera image to a Rerun viewer with focus, exposure,
+                   speckle quality and the gauge a test would place, until stopped.
     machine-check  read the machine's state and report it, with read rate and latency.
     trigger-check  handshake with the trigger microcontroller, time its link, fit its clock.
     calibrate      camera calibration from images of a target (ChArUco, chessboard, circle
@@ -43,6 +45,7 @@ from appliance.cli import (
     detect,
     devices,
     plan,
+    preview,
     recording,
     run,
     track,
@@ -72,6 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_parsers(commands)
     recording.add_parsers(commands)
     devices.add_parsers(commands)
+    preview.add_parser(commands)
     verify.add_parser(commands)
     return parser
 

@@ -30,7 +30,11 @@ from typing import Any
 
 import numpy as np
 
-from appliance.cli.detection_overlay import save_detection_overlay
+from appliance.cli.detection_overlay import (
+    gauge_overlay,
+    overlay_quality,
+    save_detection_overlay,
+)
 from appliance.config import Config, register_map_of
 from appliance.measure.gauges import Calibration
 from appliance.measure.image_quality import view_quality
@@ -57,6 +61,29 @@ def machine_for_check(config: Config, url: str) -> TestingMachine:
         url,
         register_map=register_map_of(config, "[machine.registers]"),
         accepts_commands=False,
+    )
+
+
+def simulated_setup(config: Config) -> Config:
+    """A configuration for looking at the simulated bench as a simulated test sees it: the
+    preset's optics and gauge length where `[optics]` and `[gauge] length_mm` give none, and
+    the simulated camera keeping the clock's pace (`[sim] realtime`), as a camera does."""
+    from appliance.sim.world import PRESETS
+
+    optics = configured_optics(config, PRESETS[config.sim.material].optics)
+    world = _sim_world(config)
+    return dataclasses.replace(
+        config,
+        optics=dataclasses.replace(
+            config.optics,
+            focal_length_mm=optics.focal_length_mm,
+            object_distance_mm=optics.object_distance_mm,
+            pixel_size_um=optics.pixel_size_um,
+        ),
+        gauge=dataclasses.replace(
+            config.gauge, length_mm=config.gauge.length_mm or world.gauge_length_mm
+        ),
+        sim=dataclasses.replace(config.sim, realtime=True),
     )
 
 
@@ -98,7 +125,8 @@ def check_camera(
         exposure_us: exposure override, us.
         fetch_timeout_s: timeout of each fetch.
         calibration: the `[optics] calibration` to check against the images' size.
-        save_path: where to write the last frame with its overlays; None = nowhere.
+        save_path: where to write the last frame with its overlays and set-up figures;
+            None = nowhere.
 
     Returns:
         A JSON-ready report: `frames`, `width`, `height`, `pixel_format`, `fps` (host arrival),
@@ -112,7 +140,10 @@ def check_camera(
         frames, timeouts, timestamps not increasing, too dark, overexposed, no sharp
         texture in view). With a calibration, `calibration`: its `file`, `checksum`,
         `scale_mm_per_px` and `max_distortion_px` (the largest lens distortion over the
-        image's border and centre lines).
+        image's border and centre lines). With `save_path`, `saved` (the file) and `subsets`:
+        the speckle in the subsets a test would track (`subsets`, `subset_px`,
+        `mean_intensity_gradient`, `sssig`, `speckle_size_px`:
+        `appliance.measure.speckle_quality.SubsetQuality`).
 
     Raises:
         HardwareError: the camera cannot be opened or configured, or sends nothing.
@@ -208,8 +239,13 @@ def check_camera(
     report["fit"] = not problems
     report["problems"] = problems
     if save_path is not None:
-        save_detection_overlay(save_path, last_image, in_force.pixel_format.max_value, config)
+        full_scale = in_force.pixel_format.max_value
+        overlay = gauge_overlay(last_image, config)
+        quality = overlay_quality(last_image, full_scale, config, overlay)
+        save_detection_overlay(save_path, last_image, full_scale, config, overlay, quality)
         report["saved"] = str(save_path)
+        if quality.subsets is not None:
+            report["subsets"] = dataclasses.asdict(quality.subsets)
     return report
 
 
