@@ -35,7 +35,7 @@ import numpy.typing as npt
 from appliance.dic.bspline import PAD, interpolate, spline_coefficients
 from appliance.sim.deformation import AxialDeformation
 from appliance.sim.lens import BenchGeometry
-from appliance.sim.scene import SpecimenScene, add_time_sample
+from appliance.sim.scene import SpecimenScene, integrate_exposure
 from hal.camera.base import Region
 
 FloatArray = npt.NDArray[np.float64]
@@ -117,30 +117,42 @@ class BenchScene(SpecimenScene):
             u1, v1 = region.x + region.width - 1, region.y + region.height - 1
         cols = np.arange(u0, u1 + 1, dtype=np.float64)
         rows = np.arange(v0, v1 + 1, dtype=np.float64)
-        ideal = np.zeros((rows.size, cols.size), np.float64)
         weight = 1.0 / len(times)
         x_origin_texels = self.texture_origin_mm[0] / self.texel_mm
         y_min, y_max = self.material_y_range_mm
         cx = geometry.principal_point_px[0]
-        for t, deformation in zip(times, deformations, strict=True):
-            row_y, row_pixel_mm = geometry.object_rows(deformation, t, rows)
+        samples = len(times)
+        row_ty = np.empty((samples, rows.size))
+        row_inv_stretch = np.empty((samples, rows.size))
+        row_half_width = np.empty((samples, rows.size))
+        row_textured = np.empty((samples, rows.size), np.bool_)
+        row_pixel = np.empty((samples, rows.size))
+        col_offset = np.empty((samples, cols.size))
+        for s, (t, deformation) in enumerate(zip(times, deformations, strict=True)):
+            row_y, row_pixel[s] = geometry.object_rows(deformation, t, rows)
             Y = deformation.material_y(row_y)
             stretch = deformation.lateral_stretch_at(Y)
-            add_time_sample(
-                ideal,
-                weight,
-                self._coefficients,
-                np.ascontiguousarray((Y - self.texture_origin_mm[1]) / self.texel_mm),
-                np.ascontiguousarray(1.0 / stretch),
-                np.ascontiguousarray(deformation.half_width_at(Y) * stretch),
-                np.ascontiguousarray((Y >= y_min) & (Y <= y_max)),
-                np.ascontiguousarray(row_pixel_mm),
-                cols - cx - geometry.vibration_px(t)[0],
-                geometry.centre_mm[0],
-                x_origin_texels,
-                1.0 / self.texel_mm,
-                self.background,
-            )
+            row_ty[s] = (Y - self.texture_origin_mm[1]) / self.texel_mm
+            row_inv_stretch[s] = 1.0 / stretch
+            row_half_width[s] = deformation.half_width_at(Y) * stretch
+            row_textured[s] = (Y >= y_min) & (Y <= y_max)
+            col_offset[s] = cols - cx - geometry.vibration_px(t)[0]
+        ideal = np.empty((rows.size, cols.size), np.float64)
+        integrate_exposure(
+            ideal,
+            weight,
+            self._coefficients,
+            row_ty,
+            row_inv_stretch,
+            row_half_width,
+            row_textured,
+            row_pixel,
+            col_offset,
+            geometry.centre_mm[0],
+            x_origin_texels,
+            1.0 / self.texel_mm,
+            self.background,
+        )
         if remap:
             coefficients = np.ascontiguousarray(spline_coefficients(ideal), np.float32)
             image = _remap(

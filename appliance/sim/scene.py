@@ -194,8 +194,12 @@ class PaintedMarks:
         texture += cover * (self.level - texture)
 
 
-@numba.njit(parallel=True, cache=True)
-def add_time_sample(
+EDGE_SEARCH_MARGIN_PX = 2
+"""Columns beyond a row's computed edge still evaluated pixel by pixel, against rounding."""
+
+
+@numba.njit(parallel=True, nogil=True, cache=True)
+def integrate_exposure(
     out: FloatArray,
     weight: float,
     coefficients: np.ndarray,
@@ -210,34 +214,64 @@ def add_time_sample(
     inv_texel_mm: float,
     background: float,
 ) -> None:
-    """``out += weight * (one time sample of the view)`` over a region, in parallel by row:
-    pixel (r, c) sees the object-plane point x = x_centre + offset[c] * size[r] (mm) across the
-    specimen, on the material section of row r (texel row `row_ty[r]`), and covers `size[r]` mm
-    of it (the edge blend). The plain scene's size is its scale on every row; a bench's varies
-    by row with the surface's distance."""
-    rows, cols = out.shape
+    """``out = sum over the time samples s of weight * (sample s of the view)``, in parallel by
+    row, without the GIL.
+
+    Sample s: pixel (r, c) sees the object-plane point x = x_centre + offset[s, c] *
+    size[s, r] (mm) across the specimen, on the material section of row r (texel row
+    `row_ty[s, r]`), and covers `size[s, r]` mm of it (the edge blend). The plain scene's size
+    is its scale on every row; a bench's varies by row with the surface's distance. The
+    per-sample arrays are (samples, rows) and (samples, columns).
+
+    Each pixel is the sum, in sample order from 0, of weight times its value in each sample:
+    the same operations on the same numbers as adding the samples one by one into a zeroed
+    image. Only the columns that some sample's specimen covers (with `EDGE_SEARCH_MARGIN_PX`
+    to spare) are evaluated per pixel; the rest of the row is the backdrop's sum.
+    """
+    samples, rows = row_ty.shape
+    cols = out.shape[1]
     tx_max = coefficients.shape[1] - 2 * PAD - 1.0
     ty_max = coefficients.shape[0] - 2 * PAD - 1.0
     for r in numba.prange(rows):
-        if not row_textured[r]:
-            for c in range(cols):
-                out[r, c] += weight * background
-            continue
-        ty = min(max(row_ty[r], 0.0), ty_max)
-        half_width = row_half_width_mm[r]
-        to_texels = row_inv_stretch[r] * inv_texel_mm
-        size = row_pixel_mm[r]
-        inv_size = 1.0 / size
+        backdrop = 0.0
+        for _ in range(samples):
+            backdrop += weight * background
+        first = cols
+        last = 0
+        for s in range(samples):
+            if not row_textured[s, r]:
+                continue
+            size = row_pixel_mm[s, r]
+            reach = row_half_width_mm[s, r] / size + 0.5
+            centre = x_centre_mm / size
+            offset0 = col_offset_px[s, 0]
+            low = math.floor(-reach - centre - offset0) - EDGE_SEARCH_MARGIN_PX
+            high = math.ceil(reach - centre - offset0) + EDGE_SEARCH_MARGIN_PX + 1
+            first = min(first, max(low, 0))
+            last = max(last, min(high, cols))
         for c in range(cols):
-            x = x_centre_mm + col_offset_px[c] * size
-            cover = 0.5 + (half_width - abs(x)) * inv_size
-            if cover <= 0.0:
-                value = background
-            else:
-                tx = min(max(x * to_texels - x_origin_texels, 0.0), tx_max)
-                coat = interpolate(coefficients, tx, ty)
-                value = coat if cover >= 1.0 else background + cover * (coat - background)
-            out[r, c] += weight * value
+            if c < first or c >= last:
+                out[r, c] = backdrop
+                continue
+            total = 0.0
+            for s in range(samples):
+                if not row_textured[s, r]:
+                    total += weight * background
+                    continue
+                ty = min(max(row_ty[s, r], 0.0), ty_max)
+                size = row_pixel_mm[s, r]
+                inv_size = 1.0 / size
+                x = x_centre_mm + col_offset_px[s, c] * size
+                cover = 0.5 + (row_half_width_mm[s, r] - abs(x)) * inv_size
+                if cover <= 0.0:
+                    value = background
+                else:
+                    to_texels = row_inv_stretch[s, r] * inv_texel_mm
+                    tx = min(max(x * to_texels - x_origin_texels, 0.0), tx_max)
+                    coat = interpolate(coefficients, tx, ty)
+                    value = coat if cover >= 1.0 else background + cover * (coat - background)
+                total += weight * value
+            out[r, c] = total
 
 
 class SpecimenScene:
@@ -427,30 +461,37 @@ class SpecimenScene:
         rows = np.arange(region.y, region.y + region.height, dtype=np.float64)
         _, row_y = self.object_of(0.0, rows)
         col_offset_px = cols - 0.5 * (self.sensor_width - 1)
-        row_pixel_mm = np.full(len(rows), self.scale_mm_per_px)
-        image = np.zeros((region.height, region.width), np.float64)
         weight = 1.0 / len(times)
         x_origin_texels = self.texture_origin_mm[0] / self.texel_mm
         y_min, y_max = self.material_y_range_mm
-        for deformation in deformations:
+        samples = len(deformations)
+        row_ty = np.empty((samples, len(rows)))
+        row_inv_stretch = np.empty((samples, len(rows)))
+        row_half_width = np.empty((samples, len(rows)))
+        row_textured = np.empty((samples, len(rows)), np.bool_)
+        for s, deformation in enumerate(deformations):
             Y = deformation.material_y(row_y)
             stretch = deformation.lateral_stretch_at(Y)
-            ty = (Y - self.texture_origin_mm[1]) / self.texel_mm
-            add_time_sample(
-                image,
-                weight,
-                self._coefficients,
-                np.ascontiguousarray(ty),
-                np.ascontiguousarray(1.0 / stretch),
-                np.ascontiguousarray(deformation.half_width_at(Y) * stretch),
-                np.ascontiguousarray((Y >= y_min) & (Y <= y_max)),
-                row_pixel_mm,
-                col_offset_px,
-                self.centre_mm[0],
-                x_origin_texels,
-                1.0 / self.texel_mm,
-                self.background,
-            )
+            row_ty[s] = (Y - self.texture_origin_mm[1]) / self.texel_mm
+            row_inv_stretch[s] = 1.0 / stretch
+            row_half_width[s] = deformation.half_width_at(Y) * stretch
+            row_textured[s] = (Y >= y_min) & (Y <= y_max)
+        image = np.empty((region.height, region.width), np.float64)
+        integrate_exposure(
+            image,
+            weight,
+            self._coefficients,
+            row_ty,
+            row_inv_stretch,
+            row_half_width,
+            row_textured,
+            np.full((samples, len(rows)), self.scale_mm_per_px),
+            np.ascontiguousarray(np.broadcast_to(col_offset_px, (samples, len(cols)))),
+            self.centre_mm[0],
+            x_origin_texels,
+            1.0 / self.texel_mm,
+            self.background,
+        )
         truth = {
             "time_s": 0.5 * (start_s + stop_s),
             "start_s": float(start_s),

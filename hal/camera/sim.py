@@ -33,14 +33,15 @@ readout time limiting the frame rate.
 from __future__ import annotations
 
 import collections
-import concurrent.futures
 import dataclasses
+import functools
 import math
 import threading
-from collections.abc import Sequence
 from typing import Any, Protocol, runtime_checkable
 
+import numba
 import numpy as np
+from scipy import special
 
 from hal.camera.base import (
     CameraSettings,
@@ -97,10 +98,8 @@ class SimCamera:
         self.url = url
         self._scene = scene
         self._clock = clock
-        self._noise_streams = [
-            np.random.default_rng(child)
-            for child in np.random.SeedSequence(seed).spawn(NOISE_BANDS)
-        ]
+        self._seed = seed
+        self._noise_frames = 0
         self._read_noise = read_noise
         self._electrons_per_grey = electrons_per_grey
         self._settings = CameraSettings(exposure_us=1000.0)
@@ -245,9 +244,11 @@ class SimCamera:
         return self._pending.popleft()
 
     def _digitise(self, signal: np.ndarray) -> np.ndarray:
+        key = frame_noise_key(self._seed, self._noise_frames)
+        self._noise_frames += 1
         return digitise(
             signal,
-            self._noise_streams,
+            key,
             gain_db=self._settings.gain_db,
             electrons_per_grey=self._electrons_per_grey,
             read_noise_grey=self._read_noise,
@@ -255,9 +256,47 @@ class SimCamera:
         )
 
 
+NOISE_TABLE_BITS = 16
+"""The camera noise is drawn from 2**NOISE_TABLE_BITS equally likely levels of the standard
+normal law (its quantiles at the levels' centres), see `normal_levels`."""
+
+_GOLDEN = 0x9E3779B97F4A7C15
+_MASK64 = (1 << 64) - 1
+
+
+def splitmix64(value: int) -> int:
+    """SplitMix64's output function of a 64-bit integer (Steele, Lea and Flood 2014): a
+    bijection of [0, 2**64) whose outputs for consecutive inputs pass BigCrush."""
+    z = (value + _GOLDEN) & _MASK64
+    z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & _MASK64
+    z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & _MASK64
+    return z ^ (z >> 31)
+
+
+def frame_noise_key(seed: int, frame: int) -> int:
+    """The noise key of a camera's `frame`-th image (from 0) for its `seed`."""
+    return splitmix64((splitmix64(seed & _MASK64) + frame * _GOLDEN) & _MASK64)
+
+
+@functools.cache
+def normal_levels(bits: int = NOISE_TABLE_BITS) -> np.ndarray:
+    """(2**bits,) float32 levels of a standard normal draw, each equally likely.
+
+    The normal quantiles at the centres of 2**bits equal probability intervals, made exactly
+    antisymmetric (mean 0) and scaled to unit variance: the law of a standard normal variable
+    to a resolution of 2**-bits in probability, truncated at its most extreme levels (+-4.32
+    at 16 bits: a normal draw lies beyond them with probability 1.5e-5).
+    """
+    count = 1 << bits
+    levels = special.ndtri((np.arange(count) + 0.5) / count)
+    levels = 0.5 * (levels - levels[::-1])
+    levels /= math.sqrt(float(np.mean(levels * levels)))
+    return levels.astype(np.float32)
+
+
 def digitise(
     signal: np.ndarray,
-    noise_streams: Sequence[np.random.Generator],
+    noise_key: int,
     *,
     gain_db: float,
     electrons_per_grey: float,
@@ -268,80 +307,66 @@ def digitise(
 
     Gain multiplies the signal; shot noise (Poisson in the electrons collected,
     `electrons_per_grey` per grey level at unit gain; 0 = none) and read noise (standard
-    deviation `read_noise_grey`) are added as one Gaussian draw per pixel whose variance is
+    deviation `read_noise_grey`) are added as one normal draw per pixel whose variance is
     their sum, `gain**2 * signal / electrons_per_grey + read_noise_grey**2` (the electrons'
     Poisson variance amplified by the gain, as a sensor's analogue gain does), in float32: the
     mean and the variance of every pixel are the model's, and only the Poisson law's skew
     (1/sqrt(electrons), 0.16 at one grey level of 40 electrons) is left out, far below a
     quantisation step. The result is rounded to the pixel format's counts and clipped.
 
-    The rows are cut into one band per generator of `noise_streams`, each band drawn from its
-    own generator on a thread of its own: the frame is the same whatever the number of cores.
+    The normal draw of the pixel at flat index i (row-major) is `normal_levels()[k]`, k the
+    top `NOISE_TABLE_BITS` bits of ``splitmix64(noise_key + i * 0x9E3779B97F4A7C15)`` (mod
+    2**64): a counter-based generator, so a frame is the same whatever the number of cores
+    that digitise it, and its rows are digitised in parallel without the GIL. Each frame
+    takes its own key (`frame_noise_key`).
 
     Returns:
         the frame's pixels: uint8 for Mono8, uint16 otherwise.
     """
     signal = np.asarray(signal)
+    if signal.ndim != 2:
+        raise ValueError(f"signal must be an image (2-D), got {signal.ndim}-D")
+    if signal.dtype not in (np.float32, np.float64):
+        signal = signal.astype(np.float64)
     pixels = np.empty(
         signal.shape, dtype=np.uint8 if pixel_format is PixelFormat.MONO8 else np.uint16
     )
-    edges = np.linspace(0, signal.shape[0], len(noise_streams) + 1).astype(int)
-    bands = [
-        (signal[first:last], pixels[first:last], stream)
-        for first, last, stream in zip(edges[:-1], edges[1:], noise_streams, strict=True)
-    ]
-    noise = dict(
-        gain_db=gain_db,
-        electrons_per_grey=electrons_per_grey,
-        read_noise_grey=read_noise_grey,
-        pixel_format=pixel_format,
+    gain = np.float32(10.0 ** (gain_db / 20.0))
+    shot = np.float32(gain / electrons_per_grey) if electrons_per_grey > 0 else np.float32(0.0)
+    _digitise_rows(
+        np.ascontiguousarray(signal),
+        pixels,
+        np.uint64(noise_key & _MASK64),
+        normal_levels(),
+        gain,
+        np.float32(read_noise_grey) ** 2,
+        shot,
+        np.float32((pixel_format.max_value + 1) / 256.0),
+        np.float32(pixel_format.max_value),
     )
-    if len(bands) == 1:
-        _digitise_band(*bands[0], **noise)
-    else:
-        for done in [_band_pool().submit(_digitise_band, *band, **noise) for band in bands]:
-            done.result()
     return pixels
 
 
-def _digitise_band(
-    signal: np.ndarray,
-    pixels: np.ndarray,
-    rng: np.random.Generator,
-    *,
-    gain_db: float,
-    electrons_per_grey: float,
-    read_noise_grey: float,
-    pixel_format: PixelFormat,
-) -> None:
-    gain = np.float32(10.0 ** (gain_db / 20.0))
-    grey = np.multiply(signal, gain, dtype=np.float32)
-    variance = np.full(grey.shape, np.float32(read_noise_grey) ** 2, dtype=np.float32)
-    if electrons_per_grey > 0:
-        shot = np.maximum(grey, np.float32(0.0))
-        shot *= np.float32(gain / electrons_per_grey)
-        variance += shot
-    noise = rng.standard_normal(grey.shape, dtype=np.float32)
-    np.sqrt(variance, out=variance)
-    noise *= variance
-    grey += noise
-    grey *= np.float32((pixel_format.max_value + 1) / 256.0)
-    np.rint(grey, out=grey)
-    np.clip(grey, 0, pixel_format.max_value, out=grey)
-    pixels[...] = grey
+@numba.njit(inline="always", cache=True)
+def _splitmix64(value: np.uint64) -> np.uint64:
+    z = value + np.uint64(_GOLDEN)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
 
 
-NOISE_BANDS = 2
-"""Bands of rows a simulated camera draws its noise in, each from its own generator."""
-
-_BAND_POOL: list[concurrent.futures.ThreadPoolExecutor] = []
-_BAND_POOL_LOCK = threading.Lock()
-
-
-def _band_pool() -> concurrent.futures.ThreadPoolExecutor:
-    with _BAND_POOL_LOCK:
-        if not _BAND_POOL:
-            _BAND_POOL.append(
-                concurrent.futures.ThreadPoolExecutor(NOISE_BANDS, thread_name_prefix="sim-noise")
-            )
-        return _BAND_POOL[0]
+@numba.njit(parallel=True, nogil=True, cache=True)
+def _digitise_rows(
+    signal, pixels, noise_key, levels, gain, read_variance, shot_per_grey, scale, max_count
+):
+    rows, cols = signal.shape
+    shift = np.uint64(64 - NOISE_TABLE_BITS)
+    for r in numba.prange(rows):
+        counter = noise_key + np.uint64(r) * np.uint64(cols) * np.uint64(_GOLDEN)
+        for c in range(cols):
+            grey = np.float32(signal[r, c]) * gain
+            variance = read_variance + max(grey, np.float32(0.0)) * shot_per_grey
+            draw = levels[_splitmix64(counter + np.uint64(c) * np.uint64(_GOLDEN)) >> shift]
+            grey = (grey + draw * np.sqrt(variance)) * scale
+            grey = min(max(np.rint(grey), np.float32(0.0)), max_count)
+            pixels[r, c] = grey

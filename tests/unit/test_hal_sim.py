@@ -1,8 +1,9 @@
+import numba
 import numpy as np
 import pytest
 
 from hal.camera.base import CameraSettings, PixelFormat, Region, TriggerInfo, TriggerMode
-from hal.camera.sim import digitise
+from hal.camera.sim import NOISE_TABLE_BITS, digitise, frame_noise_key, normal_levels
 from hal.clock import Pace, SimClock
 from hal.errors import HardwareConfigError, HardwareTimeout
 from hal.machine.base import MachineState
@@ -137,14 +138,13 @@ def test_noise_is_seeded_and_has_the_requested_level():
 def test_shot_and_read_noise_have_the_model_mean_and_variance():
     """Per grey level, the digitised pixels' mean is the signal times the gain and their
     variance gain * grey / electrons_per_grey + read_noise**2 (Mono16: quantisation apart)."""
-    rng = np.random.default_rng(3)
     levels = [2.0, 20.0, 60.0, 110.0]
     signal = np.repeat(np.float32(levels), 200_000).reshape(len(levels), -1)
     for gain_db in (0.0, 6.0):
         gain = 10.0 ** (gain_db / 20.0)
         counts = digitise(
             signal,
-            [rng, np.random.default_rng(4)],
+            frame_noise_key(3, int(gain_db)),
             gain_db=gain_db,
             electrons_per_grey=40.0,
             read_noise_grey=0.5,
@@ -161,12 +161,82 @@ def test_shot_and_read_noise_have_the_model_mean_and_variance():
 
 def test_digitised_pixels_clip_at_the_format_limits():
     signal = np.array([[-5.0, 0.0, 300.0, 255.0]], dtype=np.float32)
-    rng = np.random.default_rng(0)
     common = {"gain_db": 0.0, "electrons_per_grey": 0.0, "read_noise_grey": 0.0}
-    mono8 = digitise(signal, [rng], pixel_format=PixelFormat.MONO8, **common)
-    mono16 = digitise(signal, [rng], pixel_format=PixelFormat.MONO16, **common)
+    mono8 = digitise(signal, 0, pixel_format=PixelFormat.MONO8, **common)
+    mono16 = digitise(signal, 0, pixel_format=PixelFormat.MONO16, **common)
     assert mono8.dtype == np.uint8 and mono8.tolist() == [[0, 0, 255, 255]]
     assert mono16.dtype == np.uint16 and mono16.tolist() == [[0, 0, 65535, 65280]]
+
+
+def _splitmix64(values):
+    """SplitMix64's output function on uint64 arrays (numpy wraps modulo 2**64)."""
+    z = values + np.uint64(0x9E3779B97F4A7C15)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+def _digitise_by_definition(signal, key, gain_db, electrons_per_grey, read_noise_grey, fmt):
+    """`digitise` as its docstring defines it, in whole-array numpy operations."""
+    gain = np.float32(10.0 ** (gain_db / 20.0))
+    grey = signal.astype(np.float32) * gain
+    shot = np.float32(gain / electrons_per_grey) if electrons_per_grey else np.float32(0.0)
+    variance = np.float32(read_noise_grey) ** 2 + np.maximum(grey, np.float32(0.0)) * shot
+    index = np.arange(signal.size, dtype=np.uint64).reshape(signal.shape)
+    with np.errstate(over="ignore"):
+        counter = np.uint64(key) + index * np.uint64(0x9E3779B97F4A7C15)
+        draws = normal_levels()[_splitmix64(counter) >> np.uint64(64 - NOISE_TABLE_BITS)]
+    grey = (grey + draws * np.sqrt(variance)) * np.float32((fmt.max_value + 1) / 256.0)
+    counts = np.clip(np.rint(grey), np.float32(0.0), np.float32(fmt.max_value))
+    return counts.astype(np.uint8 if fmt is PixelFormat.MONO8 else np.uint16)
+
+
+@pytest.mark.parametrize("fmt", [PixelFormat.MONO8, PixelFormat.MONO16])
+def test_digitised_pixels_are_their_definition_bit_for_bit(fmt):
+    signal = np.random.default_rng(5).uniform(-10.0, 270.0, (37, 53))
+    for gain_db, electrons in ((0.0, 40.0), (6.0, 25.0), (3.0, 0.0)):
+        key = frame_noise_key(11, int(gain_db))
+        counts = digitise(
+            signal,
+            key,
+            gain_db=gain_db,
+            electrons_per_grey=electrons,
+            read_noise_grey=0.7,
+            pixel_format=fmt,
+        )
+        expected = _digitise_by_definition(signal, key, gain_db, electrons, 0.7, fmt)
+        assert counts.dtype == expected.dtype
+        assert np.array_equal(counts, expected)
+
+
+def test_a_frame_is_the_same_on_any_number_of_threads():
+    signal = np.random.default_rng(6).uniform(0.0, 255.0, (301, 257))
+    noise = {
+        "gain_db": 0.0,
+        "electrons_per_grey": 40.0,
+        "read_noise_grey": 0.5,
+        "pixel_format": PixelFormat.MONO16,
+    }
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        alone = digitise(signal, 7, **noise)
+    finally:
+        numba.set_num_threads(threads)
+    assert np.array_equal(digitise(signal, 7, **noise), alone)
+    assert not np.array_equal(digitise(signal, 8, **noise), alone)
+
+
+def test_the_normal_levels_are_a_standard_normal_law():
+    levels = normal_levels().astype(np.float64)
+    assert levels.size == 2**NOISE_TABLE_BITS
+    assert np.all(np.diff(levels) > 0)
+    assert np.array_equal(levels, -levels[::-1])
+    assert np.mean(levels**2) == pytest.approx(1.0, abs=1e-6)
+    assert levels[-1] == pytest.approx(4.325, abs=0.002)
+    quartile = levels[3 * levels.size // 4]
+    assert quartile == pytest.approx(0.6745, abs=1e-3)
+    assert np.mean(levels**4) == pytest.approx(3.0, rel=2e-3)
 
 
 def test_sim_machine_reads_the_shared_clock_and_obeys_configuration():

@@ -3,6 +3,7 @@ import math
 import numpy as np
 import pytest
 
+from appliance.dic.bspline import PAD, sample
 from appliance.dic.correlation import Correlator
 from appliance.sim.deformation import AxialDeformation
 from appliance.sim.scene import SpecimenScene, SpeckleCoat
@@ -159,6 +160,53 @@ def test_exposure_is_the_mean_of_its_time_samples(moving):
     assert np.max(np.abs(error)) < 0.5
     sharp, _ = scene.render(0.5, 0.5, FULL)
     assert np.std(blurred[:, 60:140]) < 0.8 * np.std(sharp[:, 60:140])
+
+
+def _exposure_by_definition(scene, start_s, stop_s, region):
+    """`SpecimenScene.render` as its kernel defines it: every pixel of every time sample
+    evaluated, weighted and added in sample order, in whole-array numpy operations."""
+    times, deformations = scene._exposure(start_s, stop_s)
+    weight = 1.0 / len(times)
+    rows = np.arange(region.y, region.y + region.height, dtype=np.float64)
+    cols = np.arange(region.x, region.x + region.width, dtype=np.float64)
+    _, row_y = scene.object_of(0.0, rows)
+    offset = (cols - 0.5 * (scene.sensor_width - 1))[np.newaxis, :]
+    coefficients = scene._coefficients
+    tx_max = coefficients.shape[1] - 2 * PAD - 1.0
+    ty_max = coefficients.shape[0] - 2 * PAD - 1.0
+    size = scene.scale_mm_per_px
+    y_min, y_max = scene.material_y_range_mm
+    image = np.zeros((region.height, region.width))
+    for deformation in deformations:
+        Y = deformation.material_y(row_y)
+        stretch = deformation.lateral_stretch_at(Y)
+        ty = np.clip((Y - scene.texture_origin_mm[1]) / scene.texel_mm, 0.0, ty_max)
+        half_width = (deformation.half_width_at(Y) * stretch)[:, np.newaxis]
+        x = scene.centre_mm[0] + offset * size
+        cover = 0.5 + (half_width - np.abs(x)) * (1.0 / size)
+        to_texels = ((1.0 / stretch) * (1.0 / scene.texel_mm))[:, np.newaxis]
+        x_origin = scene.texture_origin_mm[0] / scene.texel_mm
+        tx = np.clip(x * to_texels - x_origin, 0.0, tx_max)
+        coat = sample(coefficients, tx, np.broadcast_to(ty[:, np.newaxis], tx.shape))
+        back = scene.background
+        value = np.where(cover >= 1.0, coat, back + cover * (coat - back))
+        value = np.where(cover <= 0.0, back, value)
+        value[~((Y >= y_min) & (Y <= y_max))] = back
+        image += weight * value
+    return image
+
+
+def test_the_exposure_is_its_time_samples_summed_bit_for_bit():
+    """The kernel evaluates only the columns near the specimen; the others are the backdrop
+    it would have found."""
+    scene = make_scene(
+        lambda t: deformation(stretch=1.0 + 0.3 * t, lateral=1.0 - 0.1 * t, shift_mm=2.0 * t),
+        material_y_range_mm=(-5.0, 5.0),
+    )
+    for region in (FULL, Region(13, 21, 150, 97)):
+        image, truth = scene.render(0.2, 0.6, region)
+        assert truth["time_samples"] > 10
+        assert np.array_equal(image, _exposure_by_definition(scene, 0.2, 0.6, region))
 
 
 def test_time_samples_follow_the_speed(moving):
