@@ -336,6 +336,21 @@ def strain_record(sample: StrainSample) -> dict[str, Any]:
         "reference_updates": sample.reference_updates,
         "frames_dropped": sample.frames_dropped,
         "latency_ms": sample.latency_s * 1e3,
+        **width_record(sample),
+    }
+
+
+def width_record(sample: StrainSample) -> dict[str, Any]:
+    """The width at the specimen's edges of a sample (`[transverse] stations`); empty when
+    the test measures none."""
+    width = sample.width
+    if width is None:
+        return {}
+    return {
+        "width_mm": width.mean_width_mm,
+        "width_transverse_strain": width.transverse_strain,
+        "width_stations_seen": width.stations_seen,
+        "widths_mm": list(width.widths_mm),
     }
 
 

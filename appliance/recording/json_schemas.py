@@ -186,6 +186,20 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
             "reference_updates": _integer("mark references replaced after this frame"),
             "frames_dropped": _integer("camera frames dropped since the test started"),
             "latency_ms": _number("wall time from the frame's delivery to this sample", "ms"),
+            "width_mm": _number(
+                "specimen width at its edges, mean of the stations seen ([transverse] stations)",
+                "mm",
+            ),
+            "width_transverse_strain": _number(
+                "transverse engineering strain from the width (mean of w / w0 - 1)", "1"
+            ),
+            "width_stations_seen": _integer("stations whose two edges were located"),
+            "widths_mm": {
+                "type": "array",
+                "description": "width at each station from the first mark (null: flagged)",
+                "items": {"type": ["number", "null"]},
+                "unit": "mm",
+            },
         },
     ),
     "extensometer.Truth": _record(

@@ -12,6 +12,8 @@ Entity tree and timelines
     strain/axial            Scalars: axial engineering strain
     strain/true             Scalars: axial true strain
     strain/transverse       Scalars: transverse engineering strain (with a transverse gauge)
+    strain/width            Scalars: transverse engineering strain from the specimen's width
+                            at its edges (with `[transverse] stations`)
     gauge/elongation_mm     Scalars: axial elongation, mm
     machine/force_n         Scalars (drawn as points): force, N
     machine/crosshead_mm    Scalars: crosshead position, mm
@@ -67,6 +69,7 @@ GAUGES = "camera/gauges"
 AXIAL_STRAIN = "strain/axial"
 TRUE_STRAIN = "strain/true"
 TRANSVERSE_STRAIN = "strain/transverse"
+WIDTH_STRAIN = "strain/width"
 ELONGATION = "gauge/elongation_mm"
 FORCE = "machine/force_n"
 CROSSHEAD = "machine/crosshead_mm"

@@ -56,6 +56,7 @@ from appliance.live.viewer.layout import (
     TRANSVERSE_COLOUR,
     TRANSVERSE_STRAIN,
     TRUE_STRAIN,
+    WIDTH_STRAIN,
     viewer_blueprint,
 )
 from appliance.live.viewer.server import one_line
@@ -298,6 +299,13 @@ class OneTestStream:
                     rr.SeriesLines(names="transverse (engineering)", colors=[TRANSVERSE_COLOUR]),
                 )
             )
+        if facts.facts.get("width_stations"):
+            series.append(
+                (
+                    WIDTH_STRAIN,
+                    rr.SeriesLines(names="transverse (width at the edges)", colors=[(200, 120, 0)]),
+                )
+            )
         for entity, style in series:
             stream.log(entity, style, static=True)
         stream.log(
@@ -354,6 +362,12 @@ class OneTestStream:
         self._send_series(TRUE_STRAIN, [r.true_strain for r in readings], clocks)
         if self.facts.layout.transverse is not None:
             self._send_series(TRANSVERSE_STRAIN, [r.transverse_strain for r in readings], clocks)
+        if self.facts.facts.get("width_stations"):
+            self._send_series(
+                WIDTH_STRAIN,
+                [s.width.transverse_strain if s.width else math.nan for s in batch],
+                clocks,
+            )
         self._send_series(ELONGATION, [r.elongation_mm for r in readings], clocks)
         machines = [sample.machine for sample in batch]
         self._send_series(FORCE, [m.force_n if m else math.nan for m in machines], clocks)
