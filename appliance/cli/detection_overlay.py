@@ -145,14 +145,13 @@ def overlay_quality(
     image: np.ndarray, max_value: float, config: Config, overlay: GaugeOverlay
 ) -> FrameQuality:
     """The set-up figures of `image` in the subsets a test would track: at the gauge's points;
-    without marks, one subset at the gauge's centre (the image's without a centre)."""
-    height, width = image.shape[:2]
+    without marks, one subset at the gauge's centre; none without a placement."""
     if overlay.points_px is not None:
         centres = overlay.points_px
     elif overlay.centre_px is not None:
         centres = np.array([overlay.centre_px])
     else:
-        centres = np.array([[(width - 1) / 2, (height - 1) / 2]])
+        centres = np.empty((0, 2))
     return frame_quality(image, max_value, centres, config.tracking.subset_px)
 
 

@@ -336,7 +336,7 @@ class PreviewSession:
                     if time.monotonic() >= next_placement:
                         worker.offer(image)
                         next_placement = time.monotonic() + PLACEMENT_PERIOD_S
-                    overlay = self.last_placement or GaugeOverlay(lines=())
+                    overlay = self.last_placement or GaugeOverlay(lines=(), refused=True)
                     quality = overlay_quality(image, full_scale, self.config, overlay)
                     self._stamps.append(frame.timestamp_ns)
                     self.elapsed_s = time.monotonic() - started

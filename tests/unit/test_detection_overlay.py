@@ -9,7 +9,14 @@ import cv2
 import numpy as np
 import pytest
 
-from appliance.cli.detection_overlay import BLUE, GREEN, RED, detection_overlay
+from appliance.cli.detection_overlay import (
+    BLUE,
+    GREEN,
+    RED,
+    detection_overlay,
+    gauge_overlay,
+    overlay_quality,
+)
 from appliance.cli.device_checks import camera_for_check, check_camera
 from appliance.config import config_from_table
 from appliance.sim.world import PRESETS
@@ -45,6 +52,19 @@ def test_camera_check_saves_its_last_frame_with_the_detection_and_the_gauge(tmp_
     saved = cv2.imread(str(path), cv2.IMREAD_COLOR)
     assert saved.shape == (report["height"], report["width"], 3)
     assert _has(saved, GREEN) and _has(saved, BLUE) and _has(saved, RED)
+    subsets = report["subsets"]
+    assert subsets["subsets"] == 6 and subsets["subset_px"] == 41
+    assert 2.0 < subsets["speckle_size_px"] < 8.0 and subsets["sssig"] > 0
+
+
+def test_a_refused_frame_has_no_subset_figures():
+    two = np.full((400, 300), 20, np.uint8)
+    two[50:350, 40:100] = 200
+    two[50:350, 200:260] = 200
+    overlay = gauge_overlay(two, _config())
+    assert overlay.refused and overlay.centre_px is None
+    quality = overlay_quality(two, 255, _config(), overlay)
+    assert quality.subsets is None and quality.focus_gradient >= 0
 
 
 def test_a_frame_with_two_objects_gets_the_refusal_written_on_it():
