@@ -18,6 +18,16 @@ prepared (its spline coefficients) while the current one is measured. The number
 depend on the thread count. The JSON says the throughput (`throughput`: points and images per
 second from reading the reference to the last image measured, the compiled kernels' loading
 left out, and the threads).
+
+The search (`--search auto`, the default) is the one `appliance.dic.search_choice` picks for
+the known blur (`--blur-px`) and the expected one-step stretch (`--stretch LOW:HIGH`), and the
+JSON says which (`search`; a run that ends well also says it on stderr). Points the search
+misses (IC-GN not converged, or a ZNCC below 0.9) are recovered: seeds searched over a scale set of
+pre-warps when too few points were found, then every missed point from its nearest found
+neighbour's first-order prediction (`appliance.dic.seeded_recovery`); each image says how many
+(`search`: `recovered`, `scale_searched`, `waves`). Under a known blur, IC-GN's reference is
+blurred as the reference sees the blur through the measured stretch
+(`appliance.dic.stretch.blur_in_reference`; each image's `search.icgn_reference_blur_px`).
 """
 
 from __future__ import annotations
@@ -49,6 +59,13 @@ from appliance.dic.correlation import (
 )
 from appliance.dic.icgn import ICGN, ICGNResult, PreparedTarget
 from appliance.dic.lpq import LPQParams
+from appliance.dic.search_choice import SearchChoice, choose_search, explicit_search
+from appliance.dic.seeded_recovery import (
+    accepted_points,
+    nearest_predictions,
+    recover_rejected,
+)
+from appliance.dic.stretch import STRETCH_AXES, blur_in_reference
 from appliance.errors import InputError
 from appliance.measure.tracking import TrackerSettings
 from appliance.optics.calibration_file import CameraCalibration, load_calibration
@@ -76,7 +93,10 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "--subset", type=arguments.subset_size, default=41, help="subset size, px (41)"
     )
     track.add_argument(
-        "--search", choices=SEARCH_METHODS, default="zncc", help="integer search method (zncc)"
+        "--search",
+        choices=("auto", *SEARCH_METHODS),
+        default="auto",
+        help="integer search method (auto: the product's choice for the blur and stretch)",
     )
     track.add_argument(
         "--search-radius",
@@ -104,7 +124,21 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         help="direction of that motion, degrees from +x towards +y (0)",
     )
     track.add_argument(
-        "--lpq-window", type=arguments.window_size, default=None, help="LPQ window M, px (7)"
+        "--lpq-window",
+        type=arguments.window_size,
+        default=None,
+        help="LPQ window M, px (default: 3 x the blur, at least 7, at most the subset)",
+    )
+    track.add_argument(
+        "--stretch",
+        type=_stretch_range,
+        default=None,
+        metavar="LOW:HIGH",
+        help="expected one-step strain range, e.g. 0:0.5: every point is searched over "
+        "pre-warped subsets of that range (default: none; missed points are recovered)",
+    )
+    track.add_argument(
+        "--stretch-axis", choices=STRETCH_AXES, default="x", help="direction of that stretch (x)"
     )
     track.add_argument(
         "--calibration",
@@ -122,6 +156,31 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     output.add_argument("--json", action="store_true", help="print JSON on stdout")
     output.add_argument("--out", metavar="FILE", help="write JSON to FILE")
     track.set_defaults(handler=track_images)
+
+
+def _stretch_range(text: str) -> tuple[float, float]:
+    """`LOW:HIGH` strains, -0.5 < LOW <= HIGH <= 3."""
+    try:
+        low, high = (float(part) for part in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not LOW:HIGH (e.g. 0:0.5)") from None
+    if not (-0.5 < low <= high <= 3.0):
+        raise argparse.ArgumentTypeError(f"{text!r}: need -0.5 < LOW <= HIGH <= 3")
+    return low, high
+
+
+def search_choice(args: argparse.Namespace) -> SearchChoice:
+    """The search `track` runs for its options."""
+    common = dict(
+        blur_px=args.blur_px,
+        blur_angle_deg=args.blur_angle_deg,
+        stretch=args.stretch,
+        stretch_axis=args.stretch_axis,
+        subset=args.subset,
+    )
+    if args.search == "auto":
+        return choose_search(**common)
+    return explicit_search(args.search, lpq_window=args.lpq_window, **common)
 
 
 def default_threads() -> int:
@@ -151,6 +210,7 @@ def track_images(args: argparse.Namespace) -> int:
             f"track: --lpq-window: lpq_window {args.lpq_window} exceeds subset {args.subset}"
         )
     numba.set_num_threads(args.threads)
+    choice = search_choice(args)
     warm_up_s = _Pipeline.warm_up(args, reference)
     targets = ICGN(subset=args.subset, prefilter_sigma=args.prefilter_sigma)
     images = _Images(args.images, targets.prepare_target, ahead=args.threads > 1)
@@ -158,7 +218,7 @@ def track_images(args: argparse.Namespace) -> int:
     guess = np.zeros((len(points.xy), 2)) if points.guess is None else points.guess.copy()
     measured: list[dict] = []
     try:
-        pipeline = _Pipeline(args, reference, points.xy)
+        pipeline = _Pipeline(args, reference, points.xy, choice)
         for path, image, prepared in images:
             if image.shape != reference.shape:
                 raise InputError(
@@ -170,13 +230,17 @@ def track_images(args: argparse.Namespace) -> int:
             guess[converged, 0] = result.u[converged]
             guess[converged, 1] = result.v[converged]
             measured.append(_image_record(path, points.xy, result, plane))
+            if pipeline.report is not None:
+                measured[-1]["search"] = pipeline.report
     except InputError as error:
-        _emit(args, measured, calibration, None)
+        _emit(args, measured, calibration, None, choice)
         raise error
     finally:
         images.close()
     seconds = time.perf_counter() - started - warm_up_s
-    _emit(args, measured, calibration, _throughput(len(points.xy), len(measured), seconds, args))
+    throughput = _throughput(len(points.xy), len(measured), seconds, args)
+    _emit(args, measured, calibration, throughput, choice)
+    print(f"extensometer track: search: {choice.method} ({choice.reason})", file=sys.stderr)
     return 0
 
 
@@ -185,19 +249,40 @@ class _Pipeline:
     `appliance.dic.correlation.Correlator.measure`, with the ZNCC search of all points in
     batches and the work on `--threads` workers."""
 
-    def __init__(self, args: argparse.Namespace, reference: np.ndarray, xy: np.ndarray) -> None:
-        self.method = args.search
+    MIN_ZNCC = 0.9
+    """ZNCC below which a converged point counts as missed (recovery, blur re-matching)."""
+    BLUR_REMATCH_PX = 0.5
+    """Change of the blur seen from the reference above which IC-GN's reference is re-blurred."""
+    REMATCH_ITERATIONS = 60
+    """IC-GN's iteration limit against the re-blurred reference: along a long blur the
+    displacement across it converges slowly, and these points already start close."""
+
+    def __init__(
+        self,
+        args: argparse.Namespace,
+        reference: np.ndarray,
+        xy: np.ndarray,
+        choice: SearchChoice | None = None,
+    ) -> None:
+        self.choice = search_choice(args) if choice is None else choice
+        self.method = self.choice.method if args.search != "none" else "none"
         self.radius = args.search_radius
         self.subset = args.subset
         self.points = xy
-        self.lpq = LPQParams() if args.lpq_window is None else LPQParams(window=args.lpq_window)
-        self.reference = reference.astype(np.float64)
+        window = self.choice.lpq_window
+        self.lpq = LPQParams() if window is None else LPQParams(window=window)
+        self.raw_reference = reference.astype(np.float64)
+        self.reference = self.raw_reference
+        self.blur = (args.blur_px, args.blur_angle_deg)
         if args.blur_px > 0:
             self.reference = motion_blur(self.reference, args.blur_px, args.blur_angle_deg)
-        self.icgn = ICGN(
+        self.settings = dict(
             subset=args.subset, prefilter_sigma=args.prefilter_sigma, threads=args.threads
         )
+        self.icgn = ICGN(**self.settings)
         self.icgn.prepare(self.reference, xy)
+        self._rematched: dict[tuple[float, float], ICGN] = {}
+        self.report: dict | None = None
         self.zncc: ZNCCSearch | None = None
         if self.method == "zncc":
             self.zncc = ZNCCSearch(
@@ -216,7 +301,7 @@ class _Pipeline:
         centre = (side - 1) / 2.0
         step = max(1.0, min(4.0, (side - args.subset) / 4.0))
         xy = centre + step * np.array([(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1)], float)
-        pipeline = cls(args, corner, xy)
+        pipeline = cls(args, corner, xy, search_choice(args))
         prepared = pipeline.icgn.prepare_target(corner)
         pipeline.measure(corner, np.zeros((len(xy), 2)), prepared)
         return time.perf_counter() - started
@@ -226,8 +311,9 @@ class _Pipeline:
         the search window centred on `guess`."""
         if self.method == "none":
             return self.icgn.compute(prepared, guess)
+        prewarps = self.choice.prewarps
         if self.zncc is not None:
-            found = self.zncc.search(image, guess)
+            found = self.zncc.search(image, guess, prewarps=prewarps)
         else:
             found = integer_search.lpq_search(
                 self.reference,
@@ -237,13 +323,84 @@ class _Pipeline:
                 radius=self.radius,
                 guess=guess,
                 params=self.lpq,
+                prewarps=prewarps,
             )
         seeded = np.zeros((len(self.points), 6))
         seeded[:, :2] = guess
         use = found.valid
         seeded[use, :2] = found.displacement[use]
         seeded[use, 2:] = found.gradient[use]
-        return self.icgn.compute(prepared, seeded)
+        result = self.icgn.compute(prepared, seeded)
+        if not self.choice.recover:
+            return result
+        report: dict = {"recovered": 0, "scale_searched": 0, "waves": 0}
+        if self.choice.recover and not accepted_points(result, self.MIN_ZNCC).all():
+            recovery = recover_rejected(
+                self.reference,
+                image,
+                prepared,
+                self.icgn,
+                result,
+                guess,
+                radius=self.radius,
+                scale_prewarps=self.choice.scale_prewarps(),
+                min_zncc=self.MIN_ZNCC,
+            )
+            result = recovery.result
+            report = {
+                "recovered": recovery.recovered,
+                "scale_searched": recovery.scale_searched,
+                "waves": recovery.waves,
+            }
+        result, report["icgn_reference_blur_px"] = self._rematch_blur(prepared, result)
+        self.report = report
+        return result
+
+    def _rematch_blur(
+        self, prepared: PreparedTarget, result: ICGNResult
+    ) -> tuple[ICGNResult, float]:
+        """Refine the points again against a reference blurred as it sees the targets' blur
+        through the accepted points' median gradient, when that differs from the blur given by
+        more than `BLUR_REMATCH_PX` (the points not accepted only, otherwise), with a patient
+        iteration limit: from their estimate where its ZNCC reaches `MIN_ZNCC`
+        (even at the iteration limit), from their nearest accepted point's prediction
+        otherwise. Returns the result and the reference blur IC-GN used."""
+        length, angle = self.blur
+        accepted = accepted_points(result, self.MIN_ZNCC)
+        if not accepted.any():
+            return result, float(length)
+        gradient = np.median(np.c_[result.ux, result.uy, result.vx, result.vy][accepted], axis=0)
+        seen, seen_angle = blur_in_reference(length, angle, gradient)
+        if abs(seen - length) <= self.BLUR_REMATCH_PX:
+            seen, seen_angle = length, angle
+            if accepted.all():
+                return result, float(length)
+            accepted = accepted.copy()
+        key = (round(seen * 4) / 4, round(seen_angle))
+        icgn = self._rematched.get(key)
+        if icgn is None:
+            icgn = ICGN(**self.settings, max_iterations=self.REMATCH_ITERATIONS)
+            icgn.prepare(motion_blur(self.raw_reference, *key), self.points)
+            self._rematched[key] = icgn
+        zncc = np.nan_to_num(np.asarray(result.zncc, dtype=np.float64), nan=-1.0)
+        close = np.isfinite(result.u) & (zncc >= self.MIN_ZNCC)
+        if (seen, seen_angle) == (length, angle):
+            close &= ~accepted
+        indices = np.flatnonzero(close)
+        start = np.c_[result.u, result.v, result.ux, result.uy, result.vx, result.vy][indices]
+        others = np.flatnonzero(~close & ~accepted)
+        if others.size:
+            indices = np.r_[indices, others]
+            start = np.r_[start, nearest_predictions(self.points, result, accepted, others)]
+        again = icgn.compute(prepared, start, indices=indices)
+        better = accepted_points(again, self.MIN_ZNCC)
+        fields = {
+            name: np.array(getattr(result, name), copy=True)
+            for name in ("u", "v", "ux", "uy", "vx", "vy", "zncc", "iterations", "status")
+        }
+        for name, column in fields.items():
+            column[indices[better]] = np.asarray(getattr(again, name))[better]
+        return ICGNResult(**fields), float(key[0])
 
 
 class _Images:
@@ -379,8 +536,11 @@ def _emit(
     measured: list[dict],
     calibration: CameraCalibration | None,
     throughput: dict | None,
+    choice: SearchChoice | None = None,
 ) -> None:
     document: dict = {"images": measured}
+    if choice is not None:
+        document["search"] = {"requested": args.search, **choice.describe()}
     if calibration is not None:
         document["calibration"] = {
             "file": str(args.calibration),
