@@ -30,6 +30,17 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     _add_out(accuracy, required=True)
     accuracy.set_defaults(handler=_accuracy)
 
+    search = benches.add_parser(
+        "search",
+        help="integer searches (ZNCC, blur-matched ZNCC, LPQ, the automatic choice) under blur, "
+        "one-step stretch, noise and illumination change: success and time per point",
+    )
+    search.add_argument(
+        "--full", action="store_true", help="every combination (675 cases) instead of 28"
+    )
+    _add_out(search, required=True)
+    search.set_defaults(handler=_search)
+
     speed = benches.add_parser("speed", help="IC-GN and integer-search throughput")
     _add_json_and_out(speed)
     speed.set_defaults(handler=_speed)
@@ -217,6 +228,12 @@ def _accuracy(args: argparse.Namespace) -> int:
     from appliance.bench.accuracy import run_accuracy_benchmark
 
     return run_accuracy_benchmark(args.out, quick=args.quick)
+
+
+def _search(args: argparse.Namespace) -> int:
+    from appliance.bench.search_table import run_search_benchmark
+
+    return run_search_benchmark(args.out, full=args.full)
 
 
 def _speed(args: argparse.Namespace) -> int:
