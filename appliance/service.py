@@ -44,10 +44,12 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
+import gc
 import os
 import signal
 import sys
 import threading
+import tracemalloc
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
@@ -68,6 +70,13 @@ from appliance.runner import OutputFiles, run_test
 from hal.errors import HardwareError
 
 IDLE_TICK_S = 0.1
+HEAP_DIFF_VARIABLE = "EXTENSOMETER_HEAP_DIFF"
+"""`FIRST,LAST,FILE` in the environment: trace Python allocations (`tracemalloc`) from start-up,
+snapshot the heap after test FIRST and after test LAST, and write what grew between them, by
+allocation site with its call stack, to FILE. For finding where memory goes over many tests
+(`extensometer bench soak`); tracing slows the service."""
+HEAP_DIFF_FRAMES = 25
+HEAP_DIFF_SITES = 40
 _ENDED = (RunState.IDLE, RunState.ABORTED, RunState.FAULT)
 """Run states a test ends in (and the service waits in): a start command is taken in one of
 them, once the test under way, if any, has reached it."""
@@ -83,6 +92,67 @@ def state_directory(config: Config) -> Path:
 def numbered(path: Path, number: int) -> Path:
     """`path` for the first test, `stem-N.suffix` for the N-th."""
     return path if number == 1 else path.with_name(f"{path.stem}-{number}{path.suffix}")
+
+
+class HeapDiff:
+    """The Python heap's growth between two tests (see `HEAP_DIFF_VARIABLE`).
+
+    Args:
+        setting: `FIRST,LAST,FILE` (FIRST < LAST, both >= 1).
+
+    Raises:
+        InputError: a malformed setting, naming the variable.
+    """
+
+    def __init__(self, setting: str) -> None:
+        first, _, rest = setting.partition(",")
+        last, _, path = rest.partition(",")
+        try:
+            self.first, self.last = int(first), int(last)
+        except ValueError:
+            self.first = self.last = 0
+        if not (1 <= self.first < self.last and path):
+            raise InputError(f"{HEAP_DIFF_VARIABLE}: must be FIRST,LAST,FILE, got {setting!r}")
+        self.path = Path(path)
+        self._before: tracemalloc.Snapshot | None = None
+        tracemalloc.start(HEAP_DIFF_FRAMES)
+
+    @classmethod
+    def from_environment(cls) -> HeapDiff | None:
+        """The diff `$EXTENSOMETER_HEAP_DIFF` asks for, or None."""
+        setting = os.environ.get(HEAP_DIFF_VARIABLE, "")
+        return cls(setting) if setting else None
+
+    def after_test(self, number: int, log: Callable[[str], None]) -> None:
+        """Snapshot after test FIRST; after test LAST, write the growth since to the file."""
+        if number not in (self.first, self.last):
+            return
+        gc.collect()
+        snapshot = tracemalloc.take_snapshot().filter_traces(
+            [tracemalloc.Filter(False, tracemalloc.__file__)]
+        )
+        if number == self.first:
+            self._before = snapshot
+            return
+        if self._before is None:
+            return
+        grown = snapshot.compare_to(self._before, "traceback")
+        total = sum(stat.size_diff for stat in grown)
+        lines = [
+            f"Python heap growth from test {self.first} to test {self.last}: "
+            f"{total / 1e6:+.3f} MB in all ({(total / 1e6) / (self.last - self.first):+.4f} MB "
+            "per test); the largest sites:",
+            "",
+        ]
+        for stat in grown[:HEAP_DIFF_SITES]:
+            lines.append(
+                f"{stat.size_diff / 1e3:+10.1f} kB {stat.count_diff:+7d} blocks "
+                f"(now {stat.size / 1e3:.1f} kB in {stat.count})"
+            )
+            lines += [f"    {line}" for line in stat.traceback.format(most_recent_first=True)]
+        self.path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+        log(f"heap growth from test {self.first} to {self.last} written to {self.path}")
+        self._before = None
 
 
 class Service:
@@ -123,6 +193,7 @@ class Service:
         self._test_id = ""
         self._hung_call = ""
         self.tests_run = 0
+        self._heap_diff = HeapDiff.from_environment()
         self.link = LiveLink(
             config,
             notifier=notifier,
@@ -171,6 +242,8 @@ class Service:
                     self._run_one_test()
                     with self._lock:
                         self._testing = False
+                    if self._heap_diff is not None:
+                        self._heap_diff.after_test(self.tests_run, self.log)
                     continue
                 self._wake.wait(IDLE_TICK_S)
                 self._wake.clear()

@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from appliance.bench.peer_process import free_loopback_port
+from appliance.service import HEAP_DIFF_VARIABLE
 
 SHIPPED_CONFIGURATION = Path(__file__).resolve().parents[2] / "systemd" / "extensometer.toml"
 SHIPPED_UNIT = SHIPPED_CONFIGURATION.with_name("extensometer.service")
@@ -186,8 +187,15 @@ def measure_soak(
     test_s: float = 5.0,
     warm_up_tests: int = WARM_UP_TESTS,
     viewer: bool = True,
+    heap_diff_tests: tuple[int, int] | None = None,
 ) -> dict[str, Any]:
     """Serve back-to-back tests for `duration_s`; the service's figures after every test.
+
+    With `heap_diff_tests` (FIRST, LAST) the service traces its Python allocations and writes
+    what grew between the end of test FIRST and of test LAST, by allocation site
+    (`appliance.service.HEAP_DIFF_VARIABLE`): the figures' `heap_diff`, its lines (None when
+    the soak ended before test LAST). Tracing slows the service: its figures are not those of
+    an untraced soak.
 
     Raises:
         SoakError: the service did not start, start a test, or end one in time (one line).
@@ -197,6 +205,10 @@ def measure_soak(
     state_directory = Path(tempfile.mkdtemp(prefix="extensometer-soak-"))
     unit_variables = unit_environment()
     environment = {**os.environ, **unit_variables, "STATE_DIRECTORY": str(state_directory)}
+    heap_path = state_directory / "heap-diff.txt"
+    if heap_diff_tests is not None:
+        first, last = heap_diff_tests
+        environment[HEAP_DIFF_VARIABLE] = f"{first},{last},{heap_path}"
     command = [sys.executable, "-m", "appliance.cli", "serve", "--config", str(config)]
     command += ["--modbus-tcp", f"127.0.0.1:{modbus_port}"]
     command += ["--rerun-serve", f"127.0.0.1:{rerun_port}" if viewer else ""]
@@ -236,9 +248,13 @@ def measure_soak(
                 service.kill()
                 service.wait(10)
     log_tail = log_path.read_text(encoding="utf-8", errors="replace").splitlines()[-5:]
+    heap_diff = heap_path.read_text(encoding="utf-8").splitlines() if heap_path.exists() else None
     shutil.rmtree(state_directory, ignore_errors=True)
     figures = _figures(tests, warm_up_tests, time.monotonic() - started, viewer, config, log_tail)
     figures["unit_environment"] = unit_variables
+    if heap_diff_tests is not None:
+        figures["heap_diff_tests"] = list(heap_diff_tests)
+        figures["heap_diff"] = heap_diff
     return figures
 
 
@@ -316,6 +332,10 @@ def format_table(figures: Mapping[str, Any]) -> str:
         f"fds per test after warm-up:     {number(figures['fds_per_test'])}",
         f"goal met: {'yes' if figures['goal_met'] else 'no'}",
     ]
+    if "heap_diff" in figures:
+        first, last = figures["heap_diff_tests"]
+        lines += ["", f"Python heap growth, test {first} to test {last} (traced):", ""]
+        lines += figures["heap_diff"] or ["(the soak ended before that test)"]
     return "\n".join(lines)
 
 
@@ -328,6 +348,7 @@ def run_soak_benchmark(
     test_s: float = 5.0,
     viewer: bool = True,
     warm_up_tests: int = WARM_UP_TESTS,
+    heap_diff_tests: tuple[int, int] | None = None,
 ) -> int:
     """Entry point of `extensometer bench soak`; prints the figures and writes the report into
     `out` (when given). Returns 0 when measured (goal met or not), 1 when the service failed
@@ -341,6 +362,7 @@ def run_soak_benchmark(
             test_s=test_s,
             viewer=viewer,
             warm_up_tests=warm_up_tests,
+            heap_diff_tests=heap_diff_tests,
         )
     except SoakError as exc:
         sys.stderr.write(f"extensometer: bench soak: {exc}\n")

@@ -13,6 +13,7 @@ import argparse
 from pathlib import Path
 
 from appliance.cli import arguments
+from appliance.errors import InputError
 
 
 def add_parser(commands: argparse._SubParsersAction) -> None:
@@ -191,6 +192,14 @@ def _add_soak(benches: argparse._SubParsersAction) -> None:
         "viewer's history filling up)",
     )
     soak.add_argument("--no-viewer", action="store_true", help="without the Rerun server")
+    soak.add_argument(
+        "--heap-diff",
+        nargs=2,
+        type=arguments.within(int, 1, 100000),
+        metavar=("FIRST", "LAST"),
+        help="trace the service's Python allocations and report what grew from the end of "
+        "test FIRST to the end of test LAST, by allocation site (slows the service)",
+    )
     _add_json_and_out(soak)
     soak.set_defaults(handler=_soak)
 
@@ -213,6 +222,8 @@ def _add_json_and_out(parser: argparse.ArgumentParser) -> None:
 def _soak(args: argparse.Namespace) -> int:
     from appliance.bench.soak import run_soak_benchmark
 
+    if args.heap_diff and args.heap_diff[0] >= args.heap_diff[1]:
+        raise InputError("bench soak: --heap-diff: FIRST must be below LAST")
     return run_soak_benchmark(
         args.out,
         args.json,
@@ -221,6 +232,7 @@ def _soak(args: argparse.Namespace) -> int:
         test_s=args.test_s,
         viewer=not args.no_viewer,
         warm_up_tests=args.warm_up_tests,
+        heap_diff_tests=tuple(args.heap_diff) if args.heap_diff else None,
     )
 
 
