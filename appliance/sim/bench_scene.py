@@ -193,7 +193,7 @@ class BenchScene(SpecimenScene):
         step = (float(stop_s) - float(start_s)) / count
         times = [float(start_s) + (i + 0.5) * step for i in range(count)]
         deformations = [self._deformation_at(t) for t in times]
-        self._last_exposure = (float(start_s), float(stop_s), times, deformations)
+        self._remember_exposure(float(start_s), float(stop_s), times, deformations)
         return times, deformations
 
     def object_positions(

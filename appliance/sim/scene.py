@@ -40,7 +40,9 @@ is derived from `material_points` and `image_positions`.
 
 from __future__ import annotations
 
+import collections
 import math
+import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from functools import cached_property
@@ -73,6 +75,10 @@ _ROUNDING = 1e-9
 
 TEXTURE_OVERSAMPLE = 2
 """Texels per pixel (each way) of the specimen's texture, by default."""
+
+RECENT_EXPOSURES = 32
+"""Exposures whose shapes a scene keeps: the truth of a frame, computed on another thread a
+few frames after it was rendered, reuses them instead of solving the specimen again."""
 
 
 @dataclass(frozen=True)
@@ -280,8 +286,9 @@ class SpecimenScene:
     Args:
         deformation_at: specimen shape at simulation time t_s (s): a function of time alone,
             called a few times per frame (exposure start and stop, every time sample). The
-            shapes of the latest exposure are kept and reused while the same exposure is asked
-            for again (by `render`, `image_positions` or `time_samples`).
+            shapes of the latest `RECENT_EXPOSURES` exposures are kept and reused when the
+            same exposure is asked for again (by `render`, `image_positions` or
+            `time_samples`, from any thread).
         scale_mm_per_px: object-plane size of one pixel, mm/px (> 0).
         sensor_width: sensor width, px (columns).
         sensor_height: sensor height, px (rows).
@@ -367,7 +374,10 @@ class SpecimenScene:
         if marks is not None:
             marks.paint(texture, self.texture_origin_mm, self.texel_mm)
         self._coefficients = np.ascontiguousarray(spline_coefficients(texture), np.float32)
-        self._last_exposure: tuple[float, float, list[float], list[AxialDeformation]] | None = None
+        self._recent_exposures: collections.OrderedDict[
+            tuple[float, float], tuple[list[float], list[AxialDeformation]]
+        ] = collections.OrderedDict()
+        self._recent_lock = threading.Lock()
 
     @cached_property
     def pattern(self) -> SpecklePattern:
@@ -547,9 +557,10 @@ class SpecimenScene:
         start_s, stop_s = float(start_s), float(stop_s)
         if not stop_s >= start_s:
             raise ValueError(f"exposure must have stop_s >= start_s, got {start_s}, {stop_s}")
-        last = self._last_exposure
-        if last is not None and last[0] == start_s and last[1] == stop_s:
-            return last[2], last[3]
+        with self._recent_lock:
+            recent = self._recent_exposures.get((start_s, stop_s))
+        if recent is not None:
+            return recent
         count = 1
         if stop_s > start_s:
             motion = self._largest_motion_px(
@@ -560,8 +571,21 @@ class SpecimenScene:
         step = (stop_s - start_s) / count
         times = [start_s + (i + 0.5) * step for i in range(count)]
         deformations = [self._deformation_at(t) for t in times]
-        self._last_exposure = (start_s, stop_s, times, deformations)
+        self._remember_exposure(start_s, stop_s, times, deformations)
         return times, deformations
+
+    def _remember_exposure(
+        self,
+        start_s: float,
+        stop_s: float,
+        times: list[float],
+        deformations: list[AxialDeformation],
+    ) -> None:
+        """Keep an exposure's samples for the next `RECENT_EXPOSURES` exposures asked for."""
+        with self._recent_lock:
+            self._recent_exposures[(start_s, stop_s)] = (times, deformations)
+            while len(self._recent_exposures) > RECENT_EXPOSURES:
+                self._recent_exposures.popitem(last=False)
 
     def _largest_motion_px(self, first: AxialDeformation, second: AxialDeformation) -> float:
         rows = np.arange(self.sensor_height, dtype=np.float64)

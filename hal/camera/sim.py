@@ -16,10 +16,11 @@ after it was first armed, as a hung driver does: `fetch` blocks, ignoring its ti
 the camera is disarmed or closed, then raises `HardwareConnectError`. It exists to prove that
 the service's watchdog catches a measurement that stalls.
 
-In real time, the internal trigger keeps the camera's own time: when the host (or the
-renderer) falls behind by more than a frame period, the exposures it missed are lost and the
-frame ids skip them, as a camera whose buffers overflow does; as fast as possible, nothing is
-ever missed.
+In real time, the internal trigger keeps the camera's own time: the frames exposed while the
+host (or the renderer) is busy wait in `buffers` host buffers, as a GigE Vision stream's pool
+of buffers holds them (the Aravis backend's default is 16); when the host falls behind by more
+than that many frame periods, the exposures that found no buffer are lost and the frame ids
+skip them. As fast as possible, nothing is ever missed.
 
 The optics and the light are the scene's: a scene may render through a distorting, tilted
 lens with flicker, vibration and drift (the simulated bench, `appliance.sim.bench_scene`);
@@ -80,6 +81,8 @@ class SimCamera:
             (see the module docstring); None = never.
         trigger_line: what drives the trigger input in EXTERNAL mode besides
             `external_edge` calls; None = only those.
+        buffers: frames the host's buffers hold in real time with the internal trigger
+            (>= 1; see the module docstring).
     """
 
     def __init__(
@@ -93,9 +96,13 @@ class SimCamera:
         electrons_per_grey: float = 40.0,
         hang_after_s: float | None = None,
         trigger_line: TriggerLine | None = None,
+        buffers: int = 16,
         **_: Any,
     ) -> None:
+        if buffers < 1:
+            raise HardwareConfigError(f"{url}: buffers={buffers} must be >= 1")
         self.url = url
+        self._buffers = int(buffers)
         self._scene = scene
         self._clock = clock
         self._seed = seed
@@ -227,8 +234,8 @@ class SimCamera:
             start = self._next_internal_s
             if self._clock.pace is Pace.REAL_TIME:
                 late = self._clock.now_s() - (start + self._settings.exposure_us * 1e-6)
-                if late > period:
-                    missed = int(late // period)
+                if late > self._buffers * period:
+                    missed = int(late // period) - (self._buffers - 1)
                     start += missed * period
                     self._frame_id += missed
             self._next_internal_s = start + period

@@ -282,7 +282,7 @@ def test_a_real_time_camera_loses_the_exposures_a_slow_host_misses():
         now[0] += seconds
 
     clock = SimClock(Pace.REAL_TIME, wall=lambda: now[0], sleep=sleep)
-    camera = noiseless_camera(RampScene(), clock)
+    camera = noiseless_camera(RampScene(), clock, buffers=1)
     camera.configure(CameraSettings(exposure_us=1000.0))
     camera.prepare(TriggerInfo(mode=TriggerMode.INTERNAL, rate_hz=100.0))
     camera.arm()
@@ -292,3 +292,32 @@ def test_a_real_time_camera_loses_the_exposures_a_slow_host_misses():
     on_time = camera.fetch(1.0)
     assert (first.frame_id, late.frame_id, on_time.frame_id) == (0, 3, 4)
     assert [f.timestamp_ns for f in (first, late, on_time)] == [0, 30_000_000, 40_000_000]
+
+
+@pytest.mark.parametrize(
+    ("busy_s", "frame_ids"), [(0.025, [0, 1, 2, 3, 4]), (0.065, [0, 4, 5, 6, 7])]
+)
+def test_a_real_time_camera_buffers_the_frames_a_busy_host_has_not_fetched(busy_s, frame_ids):
+    """Three buffers at 100 Hz: a host 25 ms late gets every frame; 65 ms late (frames 1 to
+    6 exposed meanwhile), the three latest wait for it and the others are lost."""
+    now = [0.0]
+
+    def sleep(seconds):
+        now[0] += seconds
+
+    clock = SimClock(Pace.REAL_TIME, wall=lambda: now[0], sleep=sleep)
+    camera = noiseless_camera(RampScene(), clock, buffers=3)
+    camera.configure(CameraSettings(exposure_us=1000.0))
+    camera.prepare(TriggerInfo(mode=TriggerMode.INTERNAL, rate_hz=100.0))
+    camera.arm()
+    frames = [camera.fetch(1.0)]
+    now[0] += busy_s
+    frames += [camera.fetch(1.0) for _ in range(4)]
+    assert [f.frame_id for f in frames] == frame_ids
+    assert [f.timestamp_ns for f in frames] == [i * 10_000_000 for i in frame_ids]
+    assert now[0] == pytest.approx(max(busy_s + 0.001, frame_ids[-1] * 0.01 + 0.001))
+
+
+def test_a_sim_camera_needs_a_buffer():
+    with pytest.raises(HardwareConfigError, match="buffers=0"):
+        camera_from_url("sim://camera", scene=RampScene(), clock=SimClock(), buffers=0)
