@@ -28,8 +28,10 @@ Detection (8-bit grey image):
 
 - charuco: `cv2.aruco.CharucoDetector` (markers, then the chessboard corners they identify),
   refined by `cv2.cornerSubPix` over a window of a tenth of the corners' spacing (OpenCV's
-  own refinement leaves some corners 0.1 px off on steeply tilted views); a view is found
-  when at least `MIN_CORNERS` corners are.
+  own refinement leaves some corners 0.1 px off on steeply tilted views), then by fitting a
+  model of the blurred corner to the pixels within 0.9 of the square-to-marker gap of it
+  (`appliance.optics.chessboard_corner_fit`: `cornerSubPix` is biased towards the pixel
+  grid by about 0.013 px RMS); a view is found when at least `MIN_CORNERS` corners are.
 - chessboard: `cv2.findChessboardCornersSB` with `CALIB_CB_EXHAUSTIVE | CALIB_CB_ACCURACY`
   (the sector-based detector: subpixel corners by fitting the image around each, more accurate
   than `findChessboardCorners` + `cornerSubPix`).
@@ -47,6 +49,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from appliance.optics.chessboard_corner_fit import fit_chessboard_corners
+
 FloatArray = npt.NDArray[np.float64]
 
 KINDS = ("charuco", "chessboard", "circles")
@@ -54,6 +58,9 @@ MIN_CORNERS = 8
 CIRCLE_DIAMETER_FRACTION = 0.5
 DEFAULT_DICTIONARY = "DICT_5X5_100"
 DEFAULT_MARKER_FRACTION = 0.7
+CHARUCO_WINDOW_FRACTION = 0.9
+"""A ChArUco corner's fitting window reaches this fraction of the gap between a square's edge
+and its marker (the marker's nearest point lies 1.41 gaps from the corner)."""
 
 
 @dataclass(frozen=True)
@@ -209,6 +216,10 @@ class CalibrationTarget:
             return None
         ids = np.asarray(ids, np.int64).ravel()
         points = _refine_corners(grey, np.asarray(corners, np.float64).reshape(-1, 2))
+        jacobian = _plane_to_image(self.object_points_mm[ids], points)
+        if jacobian is not None:
+            radius_mm = CHARUCO_WINDOW_FRACTION * 0.5 * (self.square_mm - self.marker_side_mm)
+            points, _ = fit_chessboard_corners(grey, points, jacobian, radius_mm)
         order = np.argsort(ids)
         return Detection(ids[order], points[order])
 
@@ -228,6 +239,24 @@ def _refine_corners(grey: npt.NDArray[np.uint8], points: FloatArray) -> FloatArr
         (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-4),
     )
     return np.asarray(refined, np.float64).reshape(-1, 2)
+
+
+def _plane_to_image(plane_mm: FloatArray, image_px: FloatArray) -> FloatArray | None:
+    """The (n, 2, 2) Jacobian, px per mm, of the target plane's map to the image at each of
+    the corners, from the homography of all of them (the lens's distortion changes it by a
+    few per cent, enough for a fitting window); None when it cannot be found."""
+    homography, _ = cv2.findHomography(plane_mm, image_px, 0)
+    if homography is None or not np.all(np.isfinite(homography)):
+        return None
+    mapped = np.column_stack([plane_mm, np.ones(len(plane_mm))]) @ homography.T
+    w = mapped[:, 2]
+    if np.any(np.abs(w) < 1e-12):
+        return None
+    jacobian = np.empty((len(plane_mm), 2, 2))
+    for i in range(2):
+        for j in range(2):
+            jacobian[:, i, j] = (homography[i, j] * w - mapped[:, i] * homography[2, j]) / w**2
+    return jacobian
 
 
 def _dictionary(name: str) -> Any:
