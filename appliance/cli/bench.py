@@ -146,7 +146,7 @@ def _add_optics(benches: argparse._SubParsersAction) -> None:
     )
     optics.add_argument(
         "--only",
-        choices=("rubber", "metal", "verify"),
+        choices=("calibration", "rubber", "metal", "verify"),
         help="measure this section again into the report already in --out, keeping the rest",
     )
     _add_out(optics, required=True)
