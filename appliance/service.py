@@ -71,10 +71,10 @@ from hal.errors import HardwareError
 
 IDLE_TICK_S = 0.1
 HEAP_DIFF_VARIABLE = "EXTENSOMETER_HEAP_DIFF"
-"""`FIRST,LAST,FILE` in the environment: trace Python allocations (`tracemalloc`) from start-up,
-snapshot the heap after test FIRST and after test LAST, and write what grew between them, by
-allocation site with its call stack, to FILE. For finding where memory goes over many tests
-(`extensometer bench soak`); tracing slows the service."""
+"""`FIRST,LAST,FILE` in the environment: trace Python allocations (`tracemalloc`) from the end of
+test FIRST to the end of test LAST and write what was allocated in between and is still held,
+by allocation site with its call stack, to FILE. For finding where memory goes over many tests
+(`extensometer bench soak`); tracing slows the tests it spans."""
 HEAP_DIFF_FRAMES = 25
 HEAP_DIFF_SITES = 40
 _ENDED = (RunState.IDLE, RunState.ABORTED, RunState.FAULT)
@@ -115,7 +115,6 @@ class HeapDiff:
             raise InputError(f"{HEAP_DIFF_VARIABLE}: must be FIRST,LAST,FILE, got {setting!r}")
         self.path = Path(path)
         self._before: tracemalloc.Snapshot | None = None
-        tracemalloc.start(HEAP_DIFF_FRAMES)
 
     @classmethod
     def from_environment(cls) -> HeapDiff | None:
@@ -124,18 +123,21 @@ class HeapDiff:
         return cls(setting) if setting else None
 
     def after_test(self, number: int, log: Callable[[str], None]) -> None:
-        """Snapshot after test FIRST; after test LAST, write the growth since to the file."""
+        """Start tracing after test FIRST; after test LAST, write what was allocated since and
+        is still held to the file, and stop tracing."""
         if number not in (self.first, self.last):
             return
         gc.collect()
-        snapshot = tracemalloc.take_snapshot().filter_traces(
-            [tracemalloc.Filter(False, tracemalloc.__file__)]
-        )
         if number == self.first:
-            self._before = snapshot
+            tracemalloc.start(HEAP_DIFF_FRAMES)
+            self._before = tracemalloc.take_snapshot()
             return
         if self._before is None:
             return
+        snapshot = tracemalloc.take_snapshot().filter_traces(
+            [tracemalloc.Filter(False, tracemalloc.__file__)]
+        )
+        tracemalloc.stop()
         grown = snapshot.compare_to(self._before, "traceback")
         total = sum(stat.size_diff for stat in grown)
         lines = [
