@@ -48,9 +48,6 @@ import numpy as np
 from appliance.cli import arguments
 from appliance.cli.image_files import read_grey
 from appliance.cli.points_file import read_points
-from appliance.dic import integer_search
-from appliance.dic.batched_search import ZNCCSearch
-from appliance.dic.blur import motion_blur
 from appliance.dic.correlation import (
     DEFAULT_PREFILTER_SIGMA,
     SEARCH_METHODS,
@@ -58,14 +55,9 @@ from appliance.dic.correlation import (
     subsets_outside,
 )
 from appliance.dic.icgn import ICGN, ICGNResult, PreparedTarget
-from appliance.dic.lpq import LPQParams
+from appliance.dic.point_measurement import PointMeasurement
 from appliance.dic.search_choice import SearchChoice, choose_search, explicit_search
-from appliance.dic.seeded_recovery import (
-    accepted_points,
-    nearest_predictions,
-    recover_rejected,
-)
-from appliance.dic.stretch import STRETCH_AXES, blur_in_reference
+from appliance.dic.stretch import STRETCH_AXES
 from appliance.errors import InputError
 from appliance.measure.tracking import TrackerSettings
 from appliance.optics.calibration_file import CameraCalibration, load_calibration
@@ -244,18 +236,9 @@ def track_images(args: argparse.Namespace) -> int:
     return 0
 
 
-class _Pipeline:
-    """Search, then IC-GN, of the points of interest against one reference: the steps of
-    `appliance.dic.correlation.Correlator.measure`, with the ZNCC search of all points in
-    batches and the work on `--threads` workers."""
-
-    MIN_ZNCC = 0.9
-    """ZNCC below which a converged point counts as missed (recovery, blur re-matching)."""
-    BLUR_REMATCH_PX = 0.5
-    """Change of the blur seen from the reference above which IC-GN's reference is re-blurred."""
-    REMATCH_ITERATIONS = 60
-    """IC-GN's iteration limit against the re-blurred reference: along a long blur the
-    displacement across it converges slowly, and these points already start close."""
+class _Pipeline(PointMeasurement):
+    """`appliance.dic.point_measurement.PointMeasurement` for `track`'s options: the search of
+    all points (ZNCC in batches) and IC-GN on `--threads` workers."""
 
     def __init__(
         self,
@@ -264,31 +247,17 @@ class _Pipeline:
         xy: np.ndarray,
         choice: SearchChoice | None = None,
     ) -> None:
-        self.choice = search_choice(args) if choice is None else choice
-        self.method = self.choice.method if args.search != "none" else "none"
-        self.radius = args.search_radius
-        self.subset = args.subset
-        self.points = xy
-        window = self.choice.lpq_window
-        self.lpq = LPQParams() if window is None else LPQParams(window=window)
-        self.raw_reference = reference.astype(np.float64)
-        self.reference = self.raw_reference
-        self.blur = (args.blur_px, args.blur_angle_deg)
-        if args.blur_px > 0:
-            self.reference = motion_blur(self.reference, args.blur_px, args.blur_angle_deg)
-        self.settings = dict(
-            subset=args.subset, prefilter_sigma=args.prefilter_sigma, threads=args.threads
+        super().__init__(
+            reference,
+            xy,
+            search_choice(args) if choice is None else choice,
+            subset=args.subset,
+            radius=args.search_radius,
+            prefilter_sigma=args.prefilter_sigma,
+            threads=args.threads,
+            blur=(args.blur_px, args.blur_angle_deg),
+            search=args.search != "none",
         )
-        self.icgn = ICGN(**self.settings)
-        self.icgn.prepare(self.reference, xy)
-        self._rematched: dict[tuple[float, float], ICGN] = {}
-        self.report: dict | None = None
-        self.zncc: ZNCCSearch | None = None
-        if self.method == "zncc":
-            self.zncc = ZNCCSearch(
-                subset=args.subset, radius=args.search_radius, threads=args.threads
-            )
-            self.zncc.prepare(self.reference, xy)
 
     @classmethod
     def warm_up(cls, args: argparse.Namespace, reference: np.ndarray) -> float:
@@ -305,102 +274,6 @@ class _Pipeline:
         prepared = pipeline.icgn.prepare_target(corner)
         pipeline.measure(corner, np.zeros((len(xy), 2)), prepared)
         return time.perf_counter() - started
-
-    def measure(self, image: np.ndarray, guess: np.ndarray, prepared: PreparedTarget) -> ICGNResult:
-        """IC-GN result of every point in `image` (`prepared` by `self.icgn.prepare_target`),
-        the search window centred on `guess`."""
-        if self.method == "none":
-            return self.icgn.compute(prepared, guess)
-        prewarps = self.choice.prewarps
-        if self.zncc is not None:
-            found = self.zncc.search(image, guess, prewarps=prewarps)
-        else:
-            found = integer_search.lpq_search(
-                self.reference,
-                image,
-                self.points,
-                subset=self.subset,
-                radius=self.radius,
-                guess=guess,
-                params=self.lpq,
-                prewarps=prewarps,
-            )
-        seeded = np.zeros((len(self.points), 6))
-        seeded[:, :2] = guess
-        use = found.valid
-        seeded[use, :2] = found.displacement[use]
-        seeded[use, 2:] = found.gradient[use]
-        result = self.icgn.compute(prepared, seeded)
-        if not self.choice.recover:
-            return result
-        report: dict = {"recovered": 0, "scale_searched": 0, "waves": 0}
-        if self.choice.recover and not accepted_points(result, self.MIN_ZNCC).all():
-            recovery = recover_rejected(
-                self.reference,
-                image,
-                prepared,
-                self.icgn,
-                result,
-                guess,
-                radius=self.radius,
-                scale_prewarps=self.choice.scale_prewarps(),
-                min_zncc=self.MIN_ZNCC,
-            )
-            result = recovery.result
-            report = {
-                "recovered": recovery.recovered,
-                "scale_searched": recovery.scale_searched,
-                "waves": recovery.waves,
-            }
-        result, report["icgn_reference_blur_px"] = self._rematch_blur(prepared, result)
-        self.report = report
-        return result
-
-    def _rematch_blur(
-        self, prepared: PreparedTarget, result: ICGNResult
-    ) -> tuple[ICGNResult, float]:
-        """Refine the points again against a reference blurred as it sees the targets' blur
-        through the accepted points' median gradient, when that differs from the blur given by
-        more than `BLUR_REMATCH_PX` (the points not accepted only, otherwise), with a patient
-        iteration limit: from their estimate where its ZNCC reaches `MIN_ZNCC`
-        (even at the iteration limit), from their nearest accepted point's prediction
-        otherwise. Returns the result and the reference blur IC-GN used."""
-        length, angle = self.blur
-        accepted = accepted_points(result, self.MIN_ZNCC)
-        if not accepted.any():
-            return result, float(length)
-        gradient = np.median(np.c_[result.ux, result.uy, result.vx, result.vy][accepted], axis=0)
-        seen, seen_angle = blur_in_reference(length, angle, gradient)
-        if abs(seen - length) <= self.BLUR_REMATCH_PX:
-            seen, seen_angle = length, angle
-            if accepted.all():
-                return result, float(length)
-            accepted = accepted.copy()
-        key = (round(seen * 4) / 4, round(seen_angle))
-        icgn = self._rematched.get(key)
-        if icgn is None:
-            icgn = ICGN(**self.settings, max_iterations=self.REMATCH_ITERATIONS)
-            icgn.prepare(motion_blur(self.raw_reference, *key), self.points)
-            self._rematched[key] = icgn
-        zncc = np.nan_to_num(np.asarray(result.zncc, dtype=np.float64), nan=-1.0)
-        close = np.isfinite(result.u) & (zncc >= self.MIN_ZNCC)
-        if (seen, seen_angle) == (length, angle):
-            close &= ~accepted
-        indices = np.flatnonzero(close)
-        start = np.c_[result.u, result.v, result.ux, result.uy, result.vx, result.vy][indices]
-        others = np.flatnonzero(~close & ~accepted)
-        if others.size:
-            indices = np.r_[indices, others]
-            start = np.r_[start, nearest_predictions(self.points, result, accepted, others)]
-        again = icgn.compute(prepared, start, indices=indices)
-        better = accepted_points(again, self.MIN_ZNCC)
-        fields = {
-            name: np.array(getattr(result, name), copy=True)
-            for name in ("u", "v", "ux", "uy", "vx", "vy", "zncc", "iterations", "status")
-        }
-        for name, column in fields.items():
-            column[indices[better]] = np.asarray(getattr(again, name))[better]
-        return ICGNResult(**fields), float(key[0])
 
 
 class _Images:
