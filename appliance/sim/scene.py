@@ -52,7 +52,7 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
-from appliance.dic.bspline import PAD, interpolate, spline_coefficients
+from appliance.dic.bspline import PAD, cubic_weights, spline_coefficients
 from appliance.dic.synthetic import (
     DEFAULT_LEVELS,
     SpecklePattern,
@@ -229,10 +229,13 @@ def integrate_exposure(
     is its scale on every row; a bench's varies by row with the surface's distance. The
     per-sample arrays are (samples, rows) and (samples, columns).
 
-    Each pixel is the sum, in sample order from 0, of weight times its value in each sample:
-    the same operations on the same numbers as adding the samples one by one into a zeroed
-    image. Only the columns that some sample's specimen covers (with `EDGE_SEARCH_MARGIN_PX`
-    to spare) are evaluated per pixel; the rest of the row is the backdrop's sum.
+    Each pixel is the sum, in sample order from 0, of weight times its value in each sample.
+    Only the columns that some sample's specimen covers (with `EDGE_SEARCH_MARGIN_PX` to
+    spare) are evaluated per pixel; the rest of the row is the backdrop's sum. The coat's
+    spline is interpolated along the texel row of a row's sample first (one line of the four
+    rows' weighted sum per row and sample, over the columns the specimen covers), then across
+    it per pixel: the bicubic B-spline interpolation of `appliance.dic.bspline.interpolate`
+    summed in the other order (equal to it within rounding, about 1e-13 grey levels).
     """
     samples, rows = row_ty.shape
     cols = out.shape[1]
@@ -255,29 +258,53 @@ def integrate_exposure(
             high = math.ceil(reach - centre - offset0) + EDGE_SEARCH_MARGIN_PX + 1
             first = min(first, max(low, 0))
             last = max(last, min(high, cols))
-        for c in range(cols):
-            if c < first or c >= last:
-                out[r, c] = backdrop
+        for c in range(min(first, cols)):
+            out[r, c] = backdrop
+        for c in range(max(last, first), cols):
+            out[r, c] = backdrop
+        if first >= last:
+            continue
+        total = np.zeros(last - first)
+        line = np.empty(coefficients.shape[1])
+        for s in range(samples):
+            if not row_textured[s, r]:
+                for c in range(last - first):
+                    total[c] += weight * background
                 continue
-            total = 0.0
-            for s in range(samples):
-                if not row_textured[s, r]:
-                    total += weight * background
-                    continue
-                ty = min(max(row_ty[s, r], 0.0), ty_max)
-                size = row_pixel_mm[s, r]
-                inv_size = 1.0 / size
+            ty = min(max(row_ty[s, r], 0.0), ty_max)
+            iy = int(np.floor(ty))
+            wy0, wy1, wy2, wy3 = cubic_weights(ty - iy)
+            texel_row = iy + PAD - 1
+            size = row_pixel_mm[s, r]
+            inv_size = 1.0 / size
+            half_width = row_half_width_mm[s, r]
+            to_texels = row_inv_stretch[s, r] * inv_texel_mm
+            x_first = x_centre_mm + col_offset_px[s, first] * size
+            x_last = x_centre_mm + col_offset_px[s, last - 1] * size
+            tx_first = min(max(x_first * to_texels - x_origin_texels, 0.0), tx_max)
+            tx_last = min(max(x_last * to_texels - x_origin_texels, 0.0), tx_max)
+            for k in range(int(np.floor(tx_first)) + PAD - 1, int(np.floor(tx_last)) + PAD + 3):
+                line[k] = (
+                    wy0 * coefficients[texel_row, k]
+                    + wy1 * coefficients[texel_row + 1, k]
+                    + wy2 * coefficients[texel_row + 2, k]
+                    + wy3 * coefficients[texel_row + 3, k]
+                )
+            for c in range(first, last):
                 x = x_centre_mm + col_offset_px[s, c] * size
-                cover = 0.5 + (row_half_width_mm[s, r] - abs(x)) * inv_size
+                cover = 0.5 + (half_width - abs(x)) * inv_size
                 if cover <= 0.0:
                     value = background
                 else:
-                    to_texels = row_inv_stretch[s, r] * inv_texel_mm
                     tx = min(max(x * to_texels - x_origin_texels, 0.0), tx_max)
-                    coat = interpolate(coefficients, tx, ty)
+                    ix = int(np.floor(tx))
+                    wx0, wx1, wx2, wx3 = cubic_weights(tx - ix)
+                    k = ix + PAD - 1
+                    coat = wx0 * line[k] + wx1 * line[k + 1] + wx2 * line[k + 2] + wx3 * line[k + 3]
                     value = coat if cover >= 1.0 else background + cover * (coat - background)
-                total += weight * value
-            out[r, c] = total
+                total[c - first] += weight * value
+        for c in range(first, last):
+            out[r, c] = total[c - first]
 
 
 class SpecimenScene:
