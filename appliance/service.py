@@ -42,6 +42,7 @@ outlives its tests.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import datetime
 import gc
@@ -75,8 +76,9 @@ HEAP_DIFF_VARIABLE = "EXTENSOMETER_HEAP_DIFF"
 test FIRST to the end of test LAST and write what was allocated in between and is still held,
 by allocation site with its call stack, to FILE. For finding where memory goes over many tests
 (`extensometer bench soak`); tracing slows the tests it spans."""
-HEAP_DIFF_FRAMES = 25
+HEAP_DIFF_FRAMES = 3
 HEAP_DIFF_SITES = 40
+HEAP_DIFF_TYPES = 20
 _ENDED = (RunState.IDLE, RunState.ABORTED, RunState.FAULT)
 """Run states a test ends in (and the service waits in): a start command is taken in one of
 them, once the test under way, if any, has reached it."""
@@ -92,6 +94,18 @@ def state_directory(config: Config) -> Path:
 def numbered(path: Path, number: int) -> Path:
     """`path` for the first test, `stem-N.suffix` for the N-th."""
     return path if number == 1 else path.with_name(f"{path.stem}-{number}{path.suffix}")
+
+
+def _object_types() -> collections.Counter[str]:
+    return collections.Counter(type(o).__qualname__ for o in gc.get_objects())
+
+
+def _rss_mb() -> float:
+    try:
+        with open("/proc/self/statm", encoding="ascii") as statm:
+            return int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
+    except OSError:
+        return float("nan")
 
 
 class HeapDiff:
@@ -115,6 +129,8 @@ class HeapDiff:
             raise InputError(f"{HEAP_DIFF_VARIABLE}: must be FIRST,LAST,FILE, got {setting!r}")
         self.path = Path(path)
         self._before: tracemalloc.Snapshot | None = None
+        self._types_before: collections.Counter[str] = collections.Counter()
+        self._rss_before_mb = 0.0
 
     @classmethod
     def from_environment(cls) -> HeapDiff | None:
@@ -129,6 +145,8 @@ class HeapDiff:
             return
         gc.collect()
         if number == self.first:
+            self._types_before = _object_types()
+            self._rss_before_mb = _rss_mb()
             tracemalloc.start(HEAP_DIFF_FRAMES)
             self._before = tracemalloc.take_snapshot()
             return
@@ -138,12 +156,27 @@ class HeapDiff:
             [tracemalloc.Filter(False, tracemalloc.__file__)]
         )
         tracemalloc.stop()
+        rss_mb = _rss_mb()
+        types = _object_types()
+        types.subtract(self._types_before)
         grown = snapshot.compare_to(self._before, "traceback")
         total = sum(stat.size_diff for stat in grown)
+        tests = self.last - self.first
         lines = [
             f"Python heap growth from test {self.first} to test {self.last}: "
-            f"{total / 1e6:+.3f} MB in all ({(total / 1e6) / (self.last - self.first):+.4f} MB "
-            "per test); the largest sites:",
+            f"{total / 1e6:+.3f} MB in all ({(total / 1e6) / tests:+.4f} MB per test); "
+            f"resident memory {rss_mb - self._rss_before_mb:+.1f} MB "
+            f"({(rss_mb - self._rss_before_mb) / tests:+.3f} MB per test, traced).",
+            "",
+            "Objects the garbage collector tracks, by type, most grown:",
+            *(
+                f"{count:+8d} {name}"
+                for name, count in sorted(types.items(), key=lambda item: -item[1])[
+                    :HEAP_DIFF_TYPES
+                ]
+            ),
+            "",
+            "Allocation sites, most grown:",
             "",
         ]
         for stat in grown[:HEAP_DIFF_SITES]:
