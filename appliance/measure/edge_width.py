@@ -11,11 +11,12 @@ same material section while the specimen stretches.
 At a station the image is resampled on a strip square to the line between the marks
 (`STRIP_ROWS_PX` rows along the axis, averaged to wash out a speckle, one pixel apart across
 it), and each of the two edges is located to a fraction of a pixel where the strip's profile
-crosses halfway between the grey levels just outside and just inside the edge (2 to 5 px from
-it), searched within `SEARCH_PX` of where it was in the previous frame and located twice, the
-second time about the first estimate. The width is the distance between the two edge points:
-in px by the nominal scale, or with a calibration's projection between the two points mapped
-onto the specimen plane (mm), as the axial gauge measures its length.
+crosses halfway between the grey levels just outside and just inside the edge (2 to 14 px
+from it, inside at most to the specimen's middle), searched within `SEARCH_PX` of where it
+was in the previous frame and located twice, the second time about the first estimate. The
+width is the distance between the two edge points: in px by the nominal scale, or with a
+calibration's projection between the two points mapped onto the specimen plane (mm), as the
+axial gauge measures its length.
 
 A station is *flagged* (its width NaN, nothing guessed) when its strip leaves the image, when
 an edge's contrast (inside against outside level) falls below `MIN_CONTRAST_FRACTION` of its
@@ -42,17 +43,16 @@ from appliance.measure.specimen_detection import (
     detect_specimen,
 )
 
-STRIP_ROWS_PX = 21
+STRIP_ROWS_PX = 41
 """Rows along the axis averaged into a station's profile, px."""
 SEARCH_PX = 8
 """How far from its last position an edge is looked for, px."""
-LEVEL_PX = (2, 5)
+LEVEL_PX = (2, 14)
 """The grey levels either side of an edge are averaged this far from it, px."""
 MIN_CONTRAST_FRACTION = 0.5
 """An edge whose contrast falls below this fraction of its reference contrast is not seen."""
 MAX_STATIONS = 32
 """The most stations a gauge measures."""
-_MARGIN_PX = SEARCH_PX + LEVEL_PX[1] + 2
 
 
 class EdgesNotFound(ValueError):
@@ -120,8 +120,8 @@ class EdgeWidthGauge:
     ) -> None:
         if not 1 <= count <= MAX_STATIONS:
             raise ValueError(f"stations must be 1 to {MAX_STATIONS}, got {count}")
-        if not (half_width_px > LEVEL_PX[1] + 1 and math.isfinite(half_width_px)):
-            raise ValueError(f"half_width_px must exceed {LEVEL_PX[1] + 1}, got {half_width_px}")
+        if not (half_width_px > LEVEL_PX[0] + 2 and math.isfinite(half_width_px)):
+            raise ValueError(f"half_width_px must exceed {LEVEL_PX[0] + 2}, got {half_width_px}")
         self.calibration = calibration
         image = np.asarray(reference, np.float32)
         first, second = np.asarray(first_px, float), np.asarray(second_px, float)
@@ -228,9 +228,12 @@ class EdgeWidthGauge:
         if profile is None:
             return None
         sign = 1.0 if self.bright_inside else -1.0
+        inside_px = min(LEVEL_PX[1], int(0.5 * (station.right_px - station.left_px)) - 1)
+        if inside_px <= LEVEL_PX[0]:
+            return None
         edges = []
         for edge_px, outward, index in ((station.left_px, -1, 0), (station.right_px, 1, 1)):
-            located = _crossing(profile, edge_px - low, outward, sign, reach)
+            located = _crossing(profile, edge_px - low, outward, sign, reach, inside_px)
             if located is None:
                 return None
             position, contrast = located
@@ -238,7 +241,7 @@ class EdgeWidthGauge:
                 return None
             edges.append((position + low, contrast))
         (left, left_contrast), (right, right_contrast) = edges
-        if not right - left > 2 * LEVEL_PX[1]:
+        if not right - left > 2 * LEVEL_PX[0] + 2:
             return None
         return left, right, (left_contrast, right_contrast)
 
@@ -271,12 +274,13 @@ def _profile(
 
 
 def _crossing(
-    profile: np.ndarray, edge: float, outward: int, sign: float, reach: int
+    profile: np.ndarray, edge: float, outward: int, sign: float, reach: int, inside_px: int
 ) -> tuple[float, float] | None:
     """(position, contrast) of the edge near index `edge` of `profile` (the background lies
     in direction `outward`; `sign` +1 when the specimen is brighter): where the profile
-    crosses halfway between its levels 2 to 5 px outside and inside the edge, searched within
-    `reach` of `edge`, then again within `SEARCH_PX` of that. None when it crosses nowhere."""
+    crosses halfway between its levels `LEVEL_PX` outside and inside the edge (inside up to
+    `inside_px`, the specimen's middle when it is narrow), searched within `reach` of `edge`,
+    then again within `SEARCH_PX` of that. None when it crosses nowhere."""
     near, far = LEVEL_PX
     contrast = 0.0
     for search in (reach, SEARCH_PX):
@@ -284,7 +288,7 @@ def _crossing(
         if k - search - far - 1 < 0 or k + search + far + 1 >= len(profile):
             return None
         outside = profile[k + outward * near : k + outward * (far + 1) : outward].mean()
-        inside = profile[k - outward * near : k - outward * (far + 1) : -outward].mean()
+        inside = profile[k - outward * near : k - outward * (inside_px + 1) : -outward].mean()
         contrast = (inside - outside) * sign
         if not contrast > 0:
             return None

@@ -36,7 +36,7 @@ def _view(scale_mm_per_px: float, lighting: str, seed: int = 3):
 
 @pytest.mark.parametrize(
     ("lighting", "width_tolerance_px", "strain_tolerance"),
-    [("back-lit", 0.02, 0.005), ("front-dark", 0.3, 0.02), ("front-bright", 0.3, 0.02)],
+    [("back-lit", 0.02, 0.005), ("front-dark", 0.5, 0.02), ("front-bright", 0.5, 0.02)],
 )
 def test_each_station_measures_the_width_and_a_one_percent_change(
     lighting, width_tolerance_px, strain_tolerance
@@ -52,7 +52,7 @@ def test_each_station_measures_the_width_and_a_one_percent_change(
     assert reading.seen == (True,) * 5 and reading.stations_seen == 5
     assert reading.transverse_strain == pytest.approx(0.01, rel=strain_tolerance)
     assert reading.mean_width_mm == pytest.approx(np.mean(reading.widths_mm))
-    assert reading.mean_width_mm == pytest.approx(12.5 * 1.01, abs=0.3 * SCALE_MM_PER_PX)
+    assert reading.mean_width_mm == pytest.approx(12.5 * 1.01, abs=0.5 * SCALE_MM_PER_PX)
 
 
 def test_the_stations_lie_between_the_marks_and_move_with_them():
