@@ -50,6 +50,7 @@ import numpy as np
 
 from appliance.dic.correlation import DEFAULT_PREFILTER_SIGMA, Correlator
 from appliance.dic.icgn import PointStatus
+from appliance.dic.lpq import window_for_blur
 
 
 class TrackStatus(enum.IntEnum):
@@ -251,7 +252,8 @@ class _Mark:
         return functools.reduce(ReadRegion.union, regions)
 
     def prepare(self, blur_px: float) -> None:
-        """(Re)build the correlators on the reference crops, blurred by `blur_px` along the axis.
+        """(Re)build the correlators on the reference crops, blurred by `blur_px` along the axis;
+        an LPQ search takes the window of the blur rule (`appliance.dic.lpq.window_for_blur`).
 
         The every-frame correlator is prepared at once, the re-acquisition one when first used
         (`correlator`): a reference update does not pay for a re-acquisition that may never
@@ -269,6 +271,11 @@ class _Mark:
                 search=search,
                 search_radius=radius,
                 reference_blur=(blur_px, _axis_angle(s.axis)) if blur_px > 0 else None,
+                lpq_window=(
+                    window_for_blur(blur_px, _axis_angle(s.axis), subset=self.subset)
+                    if search == "lpq"
+                    else None
+                ),
                 prefilter_sigma=s.prefilter_sigma_px,
                 threads=1,
             )
