@@ -37,7 +37,7 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         "one-step stretch, noise and illumination change: success and time per point",
     )
     search.add_argument(
-        "--full", action="store_true", help="every combination (675 cases) instead of 28"
+        "--full", action="store_true", help="every combination (675 cases) instead of 34"
     )
     _add_out(search, required=True)
     search.set_defaults(handler=_search)
