@@ -76,9 +76,16 @@ _ROUNDING = 1e-9
 TEXTURE_OVERSAMPLE = 2
 """Texels per pixel (each way) of the specimen's texture, by default."""
 
-RECENT_EXPOSURES = 32
-"""Exposures whose shapes a scene keeps: the truth of a frame, computed on another thread a
-few frames after it was rendered, reuses them instead of solving the specimen again."""
+RECENT_EXPOSURES = 96
+"""Exposures whose shapes a scene keeps (each frame's, and its start's and stop's instants):
+the truth of a frame, computed on another thread a few frames after it was rendered, reuses
+them instead of solving the specimen again."""
+
+
+def _exposure_key(start_s: float, stop_s: float) -> tuple[int, int]:
+    """An exposure to the nanosecond: a frame's timestamp (whole ns) names the exposure it
+    was rendered for."""
+    return round(start_s * 1e9), round(stop_s * 1e9)
 
 
 @dataclass(frozen=True)
@@ -314,8 +321,8 @@ class SpecimenScene:
         deformation_at: specimen shape at simulation time t_s (s): a function of time alone,
             called a few times per frame (exposure start and stop, every time sample). The
             shapes of the latest `RECENT_EXPOSURES` exposures are kept and reused when the
-            same exposure is asked for again (by `render`, `image_positions` or
-            `time_samples`, from any thread).
+            same exposure (to the nanosecond) is asked for again (by `render`,
+            `image_positions` or `time_samples`, from any thread).
         scale_mm_per_px: object-plane size of one pixel, mm/px (> 0).
         sensor_width: sensor width, px (columns).
         sensor_height: sensor height, px (rows).
@@ -585,14 +592,16 @@ class SpecimenScene:
         if not stop_s >= start_s:
             raise ValueError(f"exposure must have stop_s >= start_s, got {start_s}, {stop_s}")
         with self._recent_lock:
-            recent = self._recent_exposures.get((start_s, stop_s))
+            recent = self._recent_exposures.get(_exposure_key(start_s, stop_s))
         if recent is not None:
             return recent
         count = 1
         if stop_s > start_s:
-            motion = self._largest_motion_px(
-                self._deformation_at(start_s), self._deformation_at(stop_s)
-            )
+            first = self._deformation_at(start_s)
+            last = self._deformation_at(stop_s)
+            self._remember_exposure(start_s, start_s, [start_s], [first])
+            self._remember_exposure(stop_s, stop_s, [stop_s], [last])
+            motion = self._largest_motion_px(first, last)
             steps = math.ceil(motion / self.max_sample_step_px - _ROUNDING)
             count = min(self.max_time_samples, max(1, steps))
         step = (stop_s - start_s) / count
@@ -610,7 +619,7 @@ class SpecimenScene:
     ) -> None:
         """Keep an exposure's samples for the next `RECENT_EXPOSURES` exposures asked for."""
         with self._recent_lock:
-            self._recent_exposures[(start_s, stop_s)] = (times, deformations)
+            self._recent_exposures[_exposure_key(start_s, stop_s)] = (times, deformations)
             while len(self._recent_exposures) > RECENT_EXPOSURES:
                 self._recent_exposures.popitem(last=False)
 
