@@ -100,6 +100,18 @@ def _object_types() -> collections.Counter[str]:
     return collections.Counter(type(o).__qualname__ for o in gc.get_objects())
 
 
+def _compiled_signatures() -> dict[str, set[str]]:
+    """The signatures every numba dispatcher in the process has compiled, by function."""
+    from numba.core.dispatcher import Dispatcher
+
+    compiled: dict[str, set[str]] = {}
+    for thing in gc.get_objects():
+        if isinstance(thing, Dispatcher):
+            name = f"{thing.py_func.__module__}.{thing.py_func.__qualname__}"
+            compiled.setdefault(name, set()).update(str(s) for s in thing.signatures)
+    return compiled
+
+
 def _rss_mb() -> float:
     try:
         with open("/proc/self/statm", encoding="ascii") as statm:
@@ -130,6 +142,7 @@ class HeapDiff:
         self.path = Path(path)
         self._before: tracemalloc.Snapshot | None = None
         self._types_before: collections.Counter[str] = collections.Counter()
+        self._compiled_before: dict[str, set[str]] = {}
         self._rss_before_mb = 0.0
 
     @classmethod
@@ -146,6 +159,7 @@ class HeapDiff:
         gc.collect()
         if number == self.first:
             self._types_before = _object_types()
+            self._compiled_before = _compiled_signatures()
             self._rss_before_mb = _rss_mb()
             tracemalloc.start(HEAP_DIFF_FRAMES)
             self._before = tracemalloc.take_snapshot()
@@ -159,6 +173,12 @@ class HeapDiff:
         rss_mb = _rss_mb()
         types = _object_types()
         types.subtract(self._types_before)
+        compiled = _compiled_signatures()
+        new_signatures = [
+            f"  {name}: {signature}"
+            for name, signatures in sorted(compiled.items())
+            for signature in sorted(signatures - self._compiled_before.get(name, set()))
+        ]
         grown = snapshot.compare_to(self._before, "traceback")
         total = sum(stat.size_diff for stat in grown)
         tests = self.last - self.first
@@ -175,6 +195,9 @@ class HeapDiff:
                     :HEAP_DIFF_TYPES
                 ]
             ),
+            "",
+            "Kernels compiled (or loaded from numba's cache) for a new signature meanwhile:",
+            *(new_signatures or ["  none"]),
             "",
             "Allocation sites, most grown:",
             "",
