@@ -29,6 +29,9 @@ with `[service] start = "auto"`, the first one at once:
   effect at the next test, without a restart); a file that has become unreadable, altered or
   made for another sensor size refuses that start: the reason is logged and the exit status
   register says fault, and the service waits for the next start command;
+* after each test the memory it freed is handed back to the system (`release_freed_memory`:
+  jemalloc's purge, or glibc's `malloc_trim`), so the resident memory between tests is what
+  the service holds;
 * SIGTERM (or SIGINT) ends the running test as an operator stop, closes its recording, sends
   `STOPPING=1` and exits 0.
 
@@ -43,6 +46,7 @@ outlives its tests.
 from __future__ import annotations
 
 import collections
+import ctypes
 import dataclasses
 import datetime
 import gc
@@ -76,6 +80,8 @@ HEAP_DIFF_VARIABLE = "EXTENSOMETER_HEAP_DIFF"
 test FIRST to the end of test LAST and write what was allocated in between and is still held,
 by allocation site with its call stack, to FILE. For finding where memory goes over many tests
 (`extensometer bench soak`); tracing slows the tests it spans."""
+_JEMALLOC_ALL_ARENAS = 4096
+"""jemalloc's MALLCTL_ARENAS_ALL: `arena.<i>.purge` of every arena."""
 HEAP_DIFF_FRAMES = 3
 HEAP_DIFF_SITES = 40
 HEAP_DIFF_TYPES = 20
@@ -94,6 +100,28 @@ def state_directory(config: Config) -> Path:
 def numbered(path: Path, number: int) -> Path:
     """`path` for the first test, `stem-N.suffix` for the N-th."""
     return path if number == 1 else path.with_name(f"{path.stem}-{number}{path.suffix}")
+
+
+def release_freed_memory() -> None:
+    """Hand the memory freed by the test that ended back to the system: a garbage collection,
+    then jemalloc's purge of every arena (the unit preloads jemalloc) or glibc's
+    `malloc_trim`. Allocators keep freed pages for reuse (jemalloc for about ten seconds);
+    between tests, which may be hours apart, they are better returned, and the service's
+    resident memory then says what it holds."""
+    gc.collect()
+    library = ctypes.CDLL(None)
+    if hasattr(library, "mallctl"):
+        mallctl = library.mallctl
+        mallctl.argtypes = [
+            ctypes.c_char_p,
+            ctypes.c_void_p,
+            ctypes.c_void_p,
+            ctypes.c_void_p,
+            ctypes.c_size_t,
+        ]
+        mallctl(f"arena.{_JEMALLOC_ALL_ARENAS}.purge".encode(), None, None, None, 0)
+    elif hasattr(library, "malloc_trim"):
+        library.malloc_trim(ctypes.c_size_t(0))
 
 
 def _object_types() -> collections.Counter[str]:
@@ -302,6 +330,7 @@ class Service:
                         self._testing = False
                     if self._heap_diff is not None:
                         self._heap_diff.after_test(self.tests_run, self.log)
+                    release_freed_memory()
                     continue
                 self._wake.wait(IDLE_TICK_S)
                 self._wake.clear()

@@ -9,8 +9,10 @@ controller over Modbus TCP, test after test for `duration_s`:
 
 1. writes the start command (register `command` = 1) and waits for `run_state` running;
 2. lets the test measure for `test_s`, then writes the stop command (2);
-3. waits for `run_state` idle with an `exit_status`, and reads the service's resident memory
-   (VmRSS), open file descriptors and threads from /proc.
+3. waits for `run_state` idle with an `exit_status`, and watches the service's resident memory
+   (VmRSS), open file descriptors and threads in /proc for `SETTLE_S` (the test's files are
+   written, then the service hands the memory the test freed back to the system): the lowest
+   resident memory, and the descriptors and threads at the end.
 
 The figures are those three after every test, and their slope per test fitted by least squares
 over the tests after `warm_up_tests` (the first tests load the kernels, open the servers, fill
@@ -27,6 +29,7 @@ a viewer connected to the Rerun server (none is), real devices.
 from __future__ import annotations
 
 import json
+import math
 import os
 import shlex
 import shutil
@@ -54,6 +57,11 @@ START_TIMEOUT_S = 180.0
 END_TIMEOUT_S = 120.0
 SERVICE_UP_TIMEOUT_S = 180.0
 SUMMARY_TIMEOUT_S = 10.0
+SETTLE_S = 3.0
+"""After a test ends, how long its figures are watched: the service writes the test's files and
+then hands the memory it freed back to the system (`appliance.service.release_freed_memory`);
+the lowest resident memory in that time, and the descriptors and threads at its end, are the
+test's figures."""
 _POLL_S = 0.1
 _RUN_STATE_IDLE = 0
 _RUN_STATE_RUNNING = 2
@@ -79,6 +87,20 @@ def process_figures(pid: int) -> dict[str, float]:
         "fds": len(os.listdir(f"/proc/{pid}/fd")),
         "threads": len(os.listdir(f"/proc/{pid}/task")),
     }
+
+
+def settled_figures(pid: int, settle_s: float) -> dict[str, float]:
+    """`process_figures` of `pid` once a test's end has settled: the lowest resident memory
+    seen over `settle_s`, the file descriptors and threads at its end."""
+    deadline = time.monotonic() + settle_s
+    lowest_rss_mb = math.inf
+    while True:
+        figures = process_figures(pid)
+        lowest_rss_mb = min(lowest_rss_mb, figures["rss_mb"])
+        if time.monotonic() >= deadline:
+            figures["rss_mb"] = lowest_rss_mb
+            return figures
+        time.sleep(_POLL_S)
 
 
 def unit_environment(unit: Path = SHIPPED_UNIT) -> dict[str, str]:
@@ -234,7 +256,7 @@ def measure_soak(
                 _, exit_status = controller.wait(
                     lambda s, e: s == _RUN_STATE_IDLE and e != 0, END_TIMEOUT_S, "test ended"
                 )
-                figures = process_figures(service.pid)
+                figures = settled_figures(service.pid, SETTLE_S)
                 figures["exit_status"] = exit_status
                 figures["frames"], figures["dropped"] = _frames_of(state_directory, summaries)
                 figures["test_s"] = time.monotonic() - test_start
