@@ -123,7 +123,7 @@ class EdgeWidthGauge:
         if not (half_width_px > LEVEL_PX[0] + 2 and math.isfinite(half_width_px)):
             raise ValueError(f"half_width_px must exceed {LEVEL_PX[0] + 2}, got {half_width_px}")
         self.calibration = calibration
-        image = np.asarray(reference, np.float32)
+        image = np.asarray(reference)
         first, second = np.asarray(first_px, float), np.asarray(second_px, float)
         if not np.hypot(*(second - first)) > 0:
             raise ValueError("the axial marks coincide")
@@ -170,8 +170,6 @@ class EdgeWidthGauge:
     ) -> WidthReading:
         """The widths in `image`, with the axial marks at `first_px` and `second_px` (px)."""
         grey = np.asarray(image)
-        if grey.dtype not in (np.uint8, np.uint16, np.float32):
-            grey = grey.astype(np.float32)
         first, second = np.asarray(first_px, float), np.asarray(second_px, float)
         widths: list[float] = []
         strains: list[float] = []
@@ -267,8 +265,11 @@ def _profile(
     height, width = image.shape[:2]
     if map_x.min() < 0 or map_y.min() < 0 or map_x.max() > width - 1 or map_y.max() > height - 1:
         return None
+    x0, y0 = int(map_x.min()), int(map_y.min())
+    x1, y1 = min(int(map_x.max()) + 2, width), min(int(map_y.max()) + 2, height)
+    crop = np.asarray(image[y0:y1, x0:x1], np.float32)
     strip = cv2.remap(
-        image, map_x.astype(np.float32), map_y.astype(np.float32), cv2.INTER_LINEAR
+        crop, (map_x - x0).astype(np.float32), (map_y - y0).astype(np.float32), cv2.INTER_LINEAR
     ).astype(np.float64)
     return strip.mean(axis=0)
 
@@ -293,18 +294,15 @@ def _crossing(
         if not contrast > 0:
             return None
         middle = 0.5 * (inside + outside)
-        best = None
-        for i in range(k - search, k + search):
-            a, b = profile[i] - middle, profile[i + 1] - middle
-            if a == b or a * b > 0 or (a == 0 and b == 0):
-                continue
-            position = i + a / (a - b)
-            rising = (b - a) * sign * -outward > 0
-            if rising and (best is None or abs(position - edge) < abs(best - edge)):
-                best = position
-        if best is None:
+        start = k - search
+        a = profile[start : k + search] - middle
+        b = profile[start + 1 : k + search + 1] - middle
+        crossing = (a * b <= 0) & ((b - a) * sign * -outward > 0)
+        if not crossing.any():
             return None
-        edge = best
+        at = np.flatnonzero(crossing)
+        positions = start + at + a[at] / (a[at] - b[at])
+        edge = float(positions[np.argmin(np.abs(positions - edge))])
     return edge, contrast
 
 
