@@ -4,7 +4,9 @@
 of its own, to the sinks `[rerun]` chooses; `RerunService` (`server`) is the gRPC server
 remote viewers connect to, which outlives the tests; `stream` logs one test on a thread of its
 own behind a bounded queue, so the viewer never slows the measurement; `layout` names the
-entities and timelines and lays out the viewer. Warnings (a viewer that went away) go to the
+entities and timelines and lays out the viewer; `preview` is the installer's set-up view
+(`extensometer preview`: the live frame, its focus, exposure and speckle figures, and the
+gauge a test would place). Warnings (a viewer that went away) go to the
 `appliance.live.viewer` logger.
 """
 
