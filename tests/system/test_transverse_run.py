@@ -57,7 +57,7 @@ def test_the_width_follows_the_simulated_sheet(metal_run):
     assert summary["width_stations"] == 3
     assert summary["reference_widths_mm"] == pytest.approx([12.5] * 3, abs=0.03)
     nu = summary["results"]["nu"]
-    assert nu["value"] == pytest.approx(0.3, abs=0.03), nu
+    assert nu["value"] == pytest.approx(0.3, abs=0.05), nu
     assert nu["samples"][1] - nu["samples"][0] >= 10
     assert "width at its edges" in nu["basis"]
     assert summary["results"]["r"]["not_determined"]
