@@ -145,9 +145,10 @@ class PointMeasurement:
         """Refine the points again against a reference blurred as it sees the targets' blur
         through the accepted points' median gradient, when that differs from the blur given by
         more than `BLUR_REMATCH_PX` (the points not accepted only, otherwise), with a patient
-        iteration limit: from their estimate where its ZNCC reaches `MIN_ZNCC`
-        (even at the iteration limit), from their nearest accepted point's prediction
-        otherwise. Returns the result and the reference blur IC-GN used."""
+        iteration limit: an accepted point from its estimate, a point not accepted from its
+        nearest accepted point's prediction and, where its estimate's ZNCC reaches `MIN_ZNCC`
+        (even at the iteration limit), from that estimate too; the accepted outcome with the
+        highest ZNCC wins. Returns the result and the reference blur IC-GN used."""
         length, angle = self.blur
         accepted = accepted_points(result, self.MIN_ZNCC)
         if not accepted.any():
@@ -171,7 +172,7 @@ class PointMeasurement:
             close &= ~accepted
         indices = np.flatnonzero(close)
         start = np.c_[result.u, result.v, result.ux, result.uy, result.vx, result.vy][indices]
-        others = np.flatnonzero(~close & ~accepted)
+        others = np.flatnonzero(~accepted)
         if others.size:
             indices = np.r_[indices, others]
             start = np.r_[start, nearest_predictions(self.points, result, accepted, others)]
@@ -181,6 +182,8 @@ class PointMeasurement:
             name: np.array(getattr(result, name), copy=True)
             for name in ("u", "v", "ux", "uy", "vx", "vy", "zncc", "iterations", "status")
         }
+        order = np.argsort(np.nan_to_num(again.zncc, nan=-1.0), kind="stable")
+        keep = order[better[order]]
         for name, column in fields.items():
-            column[indices[better]] = np.asarray(getattr(again, name))[better]
+            column[indices[keep]] = np.asarray(getattr(again, name))[keep]
         return ICGNResult(**fields), float(key[0])

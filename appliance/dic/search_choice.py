@@ -2,13 +2,17 @@
 
 `choose_search` turns what the appliance knows (the motion blur of the targets, from the
 planned exposure and the speed at the point or given, and the expected one-step stretch
-range, if any) into the search `extensometer track` runs. The rule follows the search
-benchmark's table (`extensometer bench search`): ZNCC
-against a reference blurred to match, with pre-warps over the expected stretch when one is
-given, and with the recovery of rejected points (`appliance.dic.seeded_recovery`) always on:
-it costs nothing when every point is accepted. On a 33 % one-step stretch with 10 px of blur,
-a 29 px translation and sigma 2 noise (77 points, 41 px subsets), LPQ at its rule's window
-(31 px) found 87 % of the points within 0.5 px and ZNCC so chosen 99 %.
+range, if any) into the search `extensometer track` runs: ZNCC against a reference blurred
+to match, with pre-warps over the expected stretch when one is given, and with the recovery
+of rejected points (`appliance.dic.seeded_recovery`) always on: it costs nothing when every
+point is accepted. The search benchmark's table backs it (`extensometer bench search`,
+`appliance/bench/results/search.md`: 34 cases of blur 0 ... 15 px, one-step stretch 0 ... 45 %,
+noise of sigma 0 ... 5 grey levels, illumination gain 0.7 with offset +20, subsets of 21 ... 61
+px): LPQ at its rule's window (`appliance.dic.lpq.window_for_blur`) never found more points
+than this choice (97.5 % on average against LPQ's 60.7 %), and beat blur-matched ZNCC without
+recovery only in 5 cases of 10 ... 15 px blur with a 25 % stretch; telling the stretch
+(`stretch`) found 97.9 % at about 3.4 times the time per point, so recovery, not pre-warping
+every point, is the default.
 """
 
 from __future__ import annotations
