@@ -34,7 +34,9 @@ Detection (8-bit grey image):
   grid by about 0.013 px RMS); a view is found when at least `MIN_CORNERS` corners are.
 - chessboard: `cv2.findChessboardCornersSB` with `CALIB_CB_EXHAUSTIVE | CALIB_CB_ACCURACY`
   (the sector-based detector: subpixel corners by fitting the image around each, more accurate
-  than `findChessboardCorners` + `cornerSubPix`).
+  than `findChessboardCorners` + `cornerSubPix`), then the blurred corner's model fitted over
+  the pixels within a quarter square of each corner (its corners 0.014..0.05 px RMS per
+  coordinate from the truth on the simulated views, the fit's 0.001..0.002 px).
 - circles: `cv2.findCirclesGrid` with `CALIB_CB_SYMMETRIC_GRID` and a blob detector accepting
   circles of 20 px^2 up to a tenth of the image.
 """
@@ -58,6 +60,8 @@ MIN_CORNERS = 8
 CIRCLE_DIAMETER_FRACTION = 0.5
 DEFAULT_DICTIONARY = "DICT_5X5_100"
 DEFAULT_MARKER_FRACTION = 0.7
+CHESSBOARD_WINDOW_FRACTION = 0.25
+"""A chessboard corner's fitting window reaches this fraction of a square from it."""
 CHARUCO_WINDOW_FRACTION = 0.9
 """A ChArUco corner's fitting window reaches this fraction of the gap between a square's edge
 and its marker (the marker's nearest point lies 1.41 gaps from the corner)."""
@@ -207,7 +211,13 @@ class CalibrationTarget:
         if not found or corners is None:
             return None
         points = np.asarray(corners, np.float64).reshape(-1, 2)
-        return Detection(np.arange(len(points), dtype=np.int64), points)
+        ids = np.arange(len(points), dtype=np.int64)
+        if self.kind == "chessboard":
+            jacobian = _plane_to_image(self.object_points_mm[ids], points)
+            if jacobian is not None:
+                radius_mm = CHESSBOARD_WINDOW_FRACTION * self.square_mm
+                points, _ = fit_chessboard_corners(grey, points, jacobian, radius_mm)
+        return Detection(ids, points)
 
     def _detect_charuco(self, grey: npt.NDArray[np.uint8]) -> Detection | None:
         detector = cv2.aruco.CharucoDetector(self.charuco_board())

@@ -73,6 +73,22 @@ def test_a_tilted_charuco_view_through_a_distorting_lens_is_found_to_its_truth()
     assert np.abs(error).max() < 0.025
 
 
+def test_a_tilted_chessboard_view_is_found_to_its_truth():
+    camera = CameraModel.ideal(2048, 1024, 2545.0, distortion=LensDistortion(k1=-0.05))
+    target = CalibrationTarget("chessboard", 9, 6, 12.0)
+    pose = calibration_poses(camera, target, 4, distance_mm=400.0, seed=1)[3]
+    assert pose.normal_tilt_deg > 30.0
+    image = render_target(target, pose, camera, look=TargetLook(noise_grey=0.5), seed=3)
+    detection = target.detect(image)
+    assert detection is not None
+    truth = target_pixels(target, pose, camera)
+    if np.abs(detection.image_px - truth).max() > 5.0:
+        truth = truth[::-1]
+    error = detection.image_px - truth
+    assert np.sqrt(np.mean(error**2)) < 0.005
+    assert np.abs(error).max() < 0.02
+
+
 def test_a_start_on_a_flat_patch_keeps_its_position_and_is_not_fitted():
     image = np.full((41, 41), 100.0) + np.random.default_rng(0).normal(0.0, 1.0, (41, 41))
     start = np.array([[20.2, 19.7]])
