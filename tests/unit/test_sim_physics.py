@@ -238,6 +238,16 @@ def test_bar_elongation_integral_equals_the_crosshead_displacement(rubber_bar, s
             )
 
 
+def test_every_loaded_state_closes_the_grip_distance_to_the_solver_tolerance(rubber_bar, steel_bar):
+    """Through loading and necking, the solved stretch puts the moving clamp edge where the
+    crosshead is (equation 1), within the Illinois tolerance of 1e-12 of the grip distance."""
+    for bar in (rubber_bar, steel_bar):
+        half = 0.5 * bar.specimen.grip_distance_mm
+        for d in np.linspace(1e-3, 0.999 * bar.breaking_crosshead_mm, 41):
+            edge = bar.deformation(float(d)).spatial_y([-half])[0]
+            assert abs(edge + half + d) <= 4e-12 * bar.specimen.grip_distance_mm + 1e-12
+
+
 def test_bar_stretch_profile_and_force(rubber_bar, steel_bar):
     for bar in (rubber_bar, steel_bar):
         piece = bar.specimen
