@@ -70,6 +70,24 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     _add_out(transverse, required=True)
     transverse.set_defaults(handler=_transverse)
 
+    realtime = benches.add_parser(
+        "realtime",
+        help="the simulated test in real time, recording and Modbus served: drops and CPU time",
+    )
+    realtime.add_argument(
+        "--runs", type=arguments.within(int, 1, 100), default=1, help="tests (default 1)"
+    )
+    realtime.add_argument(
+        "--until-strain",
+        type=arguments.within(float, 0.0, 100.0, above=True),
+        help="end each test at this strain (default: the break)",
+    )
+    realtime.add_argument(
+        "--material", choices=("rubber", "metal"), default="rubber", help="(default rubber)"
+    )
+    _add_json_and_out(realtime)
+    realtime.set_defaults(handler=_realtime)
+
     modbus = benches.add_parser(
         "modbus", help="latency from frame delivery to Modbus register update (10 points)"
     )
@@ -270,6 +288,14 @@ def _transverse(args: argparse.Namespace) -> int:
     from appliance.bench.transverse import run_transverse_benchmark
 
     return run_transverse_benchmark(args.out, quick=args.quick)
+
+
+def _realtime(args: argparse.Namespace) -> int:
+    from appliance.bench.realtime import run_realtime_benchmark
+
+    return run_realtime_benchmark(
+        args.out, args.json, runs=args.runs, until_strain=args.until_strain, material=args.material
+    )
 
 
 def _modbus(args: argparse.Namespace) -> int:
