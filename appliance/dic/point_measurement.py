@@ -22,6 +22,7 @@ from appliance.dic.lpq import LPQParams
 from appliance.dic.search_choice import SearchChoice
 from appliance.dic.seeded_recovery import (
     accepted_points,
+    in_place_points,
     nearest_predictions,
     recover_rejected,
 )
@@ -117,7 +118,8 @@ class PointMeasurement:
         if not self.choice.recover:
             return result
         report: dict = {"recovered": 0, "scale_searched": 0, "waves": 0}
-        if self.choice.recover and not accepted_points(result, self.MIN_ZNCC).all():
+        slow = in_place_points(self.points, result, self.MIN_ZNCC)
+        if (~accepted_points(result, self.MIN_ZNCC) & ~slow).any():
             recovery = recover_rejected(
                 self.reference,
                 image,
@@ -128,6 +130,7 @@ class PointMeasurement:
                 radius=self.radius,
                 scale_prewarps=self.choice.scale_prewarps(),
                 min_zncc=self.MIN_ZNCC,
+                leave=slow,
             )
             result = recovery.result
             report = {
@@ -135,12 +138,12 @@ class PointMeasurement:
                 "scale_searched": recovery.scale_searched,
                 "waves": recovery.waves,
             }
-        result, report["icgn_reference_blur_px"] = self._rematch_blur(prepared, result)
+        result, report["icgn_reference_blur_px"] = self._rematch_blur(prepared, result, slow)
         self.report = report
         return result
 
     def _rematch_blur(
-        self, prepared: PreparedTarget, result: ICGNResult
+        self, prepared: PreparedTarget, result: ICGNResult, slow: np.ndarray
     ) -> tuple[ICGNResult, float]:
         """Refine the points again against a reference blurred as it sees the targets' blur
         through the accepted points' median gradient, when that differs from the blur given by
@@ -148,7 +151,8 @@ class PointMeasurement:
         iteration limit: an accepted point from its estimate, a point not accepted from its
         nearest accepted point's prediction and, where its estimate's ZNCC reaches `MIN_ZNCC`
         (even at the iteration limit), from that estimate too; the accepted outcome with the
-        highest ZNCC wins. Returns the result and the reference blur IC-GN used."""
+        highest ZNCC wins; the points `slow` to converge in place (`in_place_points`) only
+        from their estimate. Returns the result and the reference blur IC-GN used."""
         length, angle = self.blur
         accepted = accepted_points(result, self.MIN_ZNCC)
         if not accepted.any():
@@ -159,7 +163,6 @@ class PointMeasurement:
             seen, seen_angle = length, angle
             if accepted.all():
                 return result, float(length)
-            accepted = accepted.copy()
         key = (round(seen * 4) / 4, round(seen_angle))
         icgn = self._rematched.get(key)
         if icgn is None:
@@ -172,10 +175,11 @@ class PointMeasurement:
             close &= ~accepted
         indices = np.flatnonzero(close)
         start = np.c_[result.u, result.v, result.ux, result.uy, result.vx, result.vy][indices]
-        others = np.flatnonzero(~accepted)
+        others = np.flatnonzero(~accepted & ~slow)
         if others.size:
             indices = np.r_[indices, others]
-            start = np.r_[start, nearest_predictions(self.points, result, accepted, others)]
+            parents = accepted_points(result, self.MIN_ZNCC)
+            start = np.r_[start, nearest_predictions(self.points, result, parents, others)]
         again = icgn.compute(prepared, start, indices=indices)
         better = accepted_points(again, self.MIN_ZNCC)
         fields = {

@@ -9,9 +9,9 @@ point is accepted. The search benchmark's table backs it (`extensometer bench se
 `appliance/bench/results/search.md`: 34 cases of blur 0 ... 15 px, one-step stretch 0 ... 45 %,
 noise of sigma 0 ... 5 grey levels, illumination gain 0.7 with offset +20, subsets of 21 ... 61
 px): LPQ at its rule's window (`appliance.dic.lpq.window_for_blur`) never found more points
-than this choice (97.5 % on average against LPQ's 60.7 %), and beat blur-matched ZNCC without
+than this choice (97.4 % on average against LPQ's 60.7 %), and beat blur-matched ZNCC without
 recovery only in 5 cases of 10 ... 15 px blur with a 25 % stretch; telling the stretch
-(`stretch`) found 97.9 % at about 3.4 times the time per point, so recovery, not pre-warping
+(`stretch`) found 97.8 % at about 3.6 times the time per point, so recovery, not pre-warping
 every point, is the default.
 """
 

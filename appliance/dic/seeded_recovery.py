@@ -38,6 +38,7 @@ __all__ = [
     "MIN_SEEDS",
     "Recovery",
     "accepted_points",
+    "in_place_points",
     "inconsistent_points",
     "nearest_predictions",
     "predict_from",
@@ -85,6 +86,7 @@ def recover_rejected(
     seed_points: int = 8,
     local_radius: int = 10,
     max_waves: int = 8,
+    leave: np.ndarray | None = None,
 ) -> Recovery:
     """Search again, and refine, the points of `result` that were not accepted.
 
@@ -100,11 +102,13 @@ def recover_rejected(
         seed_points: most points scale-searched for seeds.
         local_radius: search half-width around a parent's prediction, px.
         max_waves: most neighbour waves.
+        leave: (n,) bool, points not to search again (`in_place_points`), or None.
 
     Returns:
         `Recovery`.
     """
     points = icgn.points
+    left = np.zeros(len(points), dtype=bool) if leave is None else np.asarray(leave, bool)
     values = np.c_[result.u, result.v, result.ux, result.uy, result.vx, result.vy].astype(float)
     zncc = np.asarray(result.zncc, dtype=np.float64).copy()
     iterations = np.asarray(result.iterations).copy()
@@ -130,8 +134,8 @@ def recover_rejected(
         status[keep] = refined.status[good]
         accepted[keep] = True
 
-    if accepted.sum() < MIN_SEEDS and (~accepted).any():
-        rejected = np.flatnonzero(~accepted)
+    if accepted.sum() < MIN_SEEDS and (~accepted & ~left).any():
+        rejected = np.flatnonzero(~accepted & ~left)
         centre = points.mean(axis=0)
         order = np.argsort(np.hypot(*(points[rejected] - centre).T), kind="stable")
         seeds = rejected[order[:seed_points]]
@@ -148,9 +152,9 @@ def recover_rejected(
         refine(seeds, found.u, found.v, found.gradient, found.valid)
 
     waves = 0
-    while waves < max_waves and accepted.any() and (~accepted).any():
+    while waves < max_waves and accepted.any() and (~accepted & ~left).any():
         parents_of = np.flatnonzero(accepted)
-        rejected = np.flatnonzero(~accepted)
+        rejected = np.flatnonzero(~accepted & ~left)
         _, nearest = cKDTree(points[parents_of]).query(points[rejected])
         parents = parents_of[np.atleast_1d(nearest)]
         start = predict_from(points, values, parents, rejected)
@@ -240,4 +244,27 @@ def inconsistent_points(points: np.ndarray, result: ICGNResult, min_zncc: float)
         predicted = predict_from(points, values, ids[near[:, j + 1]], ids)
         deviation[:, j] = np.hypot(*(predicted[:, :2] - values[ids, :2]).T)
     out[ids] = np.median(deviation, axis=1) > CONSISTENCY_PX
+    return out
+
+
+def in_place_points(points: np.ndarray, result: ICGNResult, min_zncc: float) -> np.ndarray:
+    """(n,) bool: points IC-GN left at its iteration limit with a ZNCC of at least `min_zncc`
+    within `CONSISTENCY_PX` of their nearest accepted point's prediction: found, only slow to
+    converge (a subset of few speckles, or one smeared by blur), so searching them again
+    gains nothing. None when no point is accepted."""
+    accepted = accepted_points(result, min_zncc)
+    zncc = np.nan_to_num(np.asarray(result.zncc, dtype=np.float64), nan=-1.0)
+    slow = (
+        (np.asarray(result.status) == PointStatus.MAX_ITERATIONS)
+        & (zncc >= min_zncc)
+        & np.isfinite(result.u)
+        & np.isfinite(result.v)
+    )
+    out = np.zeros(accepted.shape, dtype=bool)
+    ids = np.flatnonzero(slow)
+    if ids.size == 0 or not accepted.any():
+        return out
+    predicted = nearest_predictions(points, result, accepted, ids)
+    off = np.hypot(predicted[:, 0] - result.u[ids], predicted[:, 1] - result.v[ids])
+    out[ids] = off <= CONSISTENCY_PX
     return out
