@@ -932,6 +932,15 @@ def report_markdown(results: dict, plots: list[str]) -> str:
             for r in results["d_hard"]
         ],
     )
+    lines += [
+        "",
+        "## The search table",
+        "",
+        "Which search to run, by blur (0-15 px), one-step stretch (0-50 %), noise (sigma 0, 2 "
+        "and 5), illumination change and subset (21, 41, 61 px), for ZNCC, blur-matched ZNCC, "
+        "LPQ at the window rule's size and the automatic choice, with success within 0.5 px "
+        "and time per point: `extensometer bench search` ([search.md](search.md)).",
+    ]
     lines += ["", "## Plots", ""] + [f"![{name}]({name})" for name in plots]
     return "\n".join(lines) + "\n"
 
