@@ -98,6 +98,16 @@ def test_one_section_is_measured_again_into_the_report_keeping_the_others(result
     assert "measured again" in (out / "optics.md").read_text()
 
 
+def test_the_calibration_section_is_measured_again_keeping_the_tests(results):
+    out, _ = results
+    before = json.loads((out / "optics.json").read_text())["figures"]
+    assert run_optics_benchmark(out, plan=REDUCED, only="calibration") == 0
+    again = json.loads((out / "optics.json").read_text())["figures"]
+    assert again["metal"] == before["metal"] and again["verify"] == before["verify"]
+    assert again["remeasured"][-1]["section"] == "calibration"
+    assert again["calibration"]["figures"]["rms_reprojection_px"]["worst"] < 0.05
+
+
 def test_a_section_alone_needs_an_earlier_report(tmp_path):
     with pytest.raises(InputError, match="optics.json: no earlier optics report"):
         run_optics_benchmark(tmp_path, plan=REDUCED, only="metal")

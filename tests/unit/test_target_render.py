@@ -92,3 +92,14 @@ def test_calibration_views_tilt_the_board_and_spread_over_the_field():
     centres = np.array([target_pixels(target, p, camera).mean(axis=0) for p in poses[1:]])
     assert centres[:, 0].min() < 600 and centres[:, 0].max() > 1450
     assert centres[:, 1].min() < 350 and centres[:, 1].max() > 670
+
+
+def test_a_small_board_under_high_magnification_is_rendered_finely_enough_for_its_corners():
+    camera = CameraModel.ideal(1024, 1024, 17.43, telecentric=True)
+    target = CalibrationTarget("charuco", 9, 9, 4.5, 3.15)
+    pose = calibration_poses(camera, target, 1, distance_mm=400.0)[0]
+    image = render_target(target, pose, camera, look=TargetLook(noise_grey=0.0))
+    detection = target.detect(image)
+    assert detection is not None and len(detection) == 64
+    error = detection.image_px - target_pixels(target, pose, camera)[detection.ids]
+    assert np.sqrt(np.mean(error**2)) < 0.005
