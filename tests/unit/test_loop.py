@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Mapping
 from typing import Any
 
@@ -188,7 +189,15 @@ def test_a_hung_camera_stops_the_samples_and_a_stop_still_ends_the_run():
         block_when_full=True,
         fetch_timeout_s=0.2,
     )
-    stopper = threading.Timer(1.5, loop.request_stop, args=("operator stop",))
+
+    def stop_once_hung() -> None:
+        deadline = time.monotonic() + 60.0
+        while len(samples) < 4 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.6)
+        loop.request_stop("operator stop")
+
+    stopper = threading.Thread(target=stop_once_hung)
     stopper.start()
     result = loop.run(StopCriteria(until_break=False))
     stopper.join()
