@@ -45,7 +45,6 @@ from typing import Any
 import numpy as np
 
 from appliance.bench.peer_process import free_loopback_port
-from appliance.service import HEAP_DIFF_VARIABLE
 
 SHIPPED_CONFIGURATION = Path(__file__).resolve().parents[2] / "systemd" / "extensometer.toml"
 SHIPPED_UNIT = SHIPPED_CONFIGURATION.with_name("extensometer.service")
@@ -229,6 +228,8 @@ def measure_soak(
     environment = {**os.environ, **unit_variables, "STATE_DIRECTORY": str(state_directory)}
     heap_path = state_directory / "heap-diff.txt"
     if heap_diff_tests is not None:
+        from appliance.service import HEAP_DIFF_VARIABLE
+
         first, last = heap_diff_tests
         environment[HEAP_DIFF_VARIABLE] = f"{first},{last},{heap_path}"
     command = [sys.executable, "-m", "appliance.cli", "serve", "--config", str(config)]
