@@ -14,7 +14,8 @@ whose scale error is 2e-6), fits the grid's scale change by least squares (isotr
 across the specimen only) and compares it with the false strain the gauge's centre section
 carries (its dz, the warm-up drift). The truth only scores.
 
-Run: ``python -m appliance.bench.out_of_plane metal|rubber`` (prints one line per instant).
+Run: ``python -m appliance.bench.out_of_plane metal|rubber [SEED]`` (one line per instant;
+the seed draws the camera noise, 7 unless given).
 """
 
 from __future__ import annotations
@@ -42,9 +43,9 @@ CASES = {
     },
     "rubber": {
         "speed_mm_min": 500.0,
-        "grid_x_mm": np.linspace(-10.0, 10.0, 7),
-        "grid_y_mm": np.linspace(-56.0, -46.5, 4),
-        "subset_px": 31,
+        "grid_x_mm": np.linspace(-9.0, 9.0, 10),
+        "grid_y_mm": np.linspace(-56.0, -47.0, 6),
+        "subset_px": 41,
         "times_s": (0.0, 0.02, 0.04, 0.06, 0.08, 0.1, 0.12, 0.15, 0.2, 0.4, 1.0),
     },
 }
@@ -126,10 +127,13 @@ def measure(material: str, seed: int = 7) -> list[dict[str, float]]:
 
 
 def main(argv: list[str]) -> int:
-    if len(argv) != 1 or argv[0] not in CASES:
-        print(f"usage: python -m appliance.bench.out_of_plane {'|'.join(CASES)}", file=sys.stderr)
+    if not 1 <= len(argv) <= 2 or argv[0] not in CASES or not argv[-1].isdigit() and len(argv) == 2:
+        print(
+            f"usage: python -m appliance.bench.out_of_plane {'|'.join(CASES)} [SEED]",
+            file=sys.stderr,
+        )
         return 2
-    rows = measure(argv[0])
+    rows = measure(argv[0], int(argv[1]) if len(argv) == 2 else 7)
     print(" ".join(rows[0]))
     for row in rows:
         print(

@@ -22,4 +22,5 @@ def test_the_scale_fit_across_ignores_a_stretch_along():
 
 def test_an_unknown_material_is_refused_with_exit_2(capsys):
     assert main(["wood"]) == 2
+    assert main(["metal", "x"]) == 2
     assert "metal|rubber" in capsys.readouterr().err
