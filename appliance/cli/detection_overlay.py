@@ -18,7 +18,6 @@ what was seen either way.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -27,6 +26,7 @@ import numpy as np
 from appliance.cli.detect import PLACEMENT_NOTES, gauge_marks
 from appliance.config import Config
 from appliance.errors import InputError
+from appliance.measure.gauge_overlay import GaugeOverlay
 from appliance.measure.speckle_quality import FrameQuality, frame_quality
 from appliance.rig import gauge_centre_in
 
@@ -36,34 +36,6 @@ YELLOW = (0, 220, 255)
 RED = (0, 0, 255)
 WHITE = (255, 255, 255)
 """Overlay colours, OpenCV's BGR order."""
-
-
-@dataclass(frozen=True)
-class GaugeOverlay:
-    """What a test would place on a frame, to draw over it (sensor pixels, (x, y)).
-
-    Attributes:
-        lines: the placement in words: the specimen found, where the gauge goes and the
-            length it achieves, or why it is refused.
-        outline_px: the specimen's outline, (N, 2); None when nothing was detected.
-        axis_px: the axis over the parallel length, from end to end, (2, 2).
-        end_ticks_px: a tick across the axis at each end of the parallel length, (2, 2, 2).
-        ends_in_view: whether each end was seen.
-        points_px: the points a test would track, (M, 2); None without a gauge.
-        marks_px: the marks' centres, (K, 2).
-        refused: no gauge can be placed on the frame (`lines` say why).
-        centre_px: the gauge's centre; None when no centre was found.
-    """
-
-    lines: tuple[str, ...]
-    outline_px: np.ndarray | None = None
-    axis_px: np.ndarray | None = None
-    end_ticks_px: np.ndarray | None = None
-    ends_in_view: tuple[bool, bool] = (True, True)
-    points_px: np.ndarray | None = None
-    marks_px: np.ndarray | None = None
-    refused: bool = False
-    centre_px: tuple[float, float] | None = None
 
 
 def gauge_overlay(image: np.ndarray, config: Config) -> GaugeOverlay:

@@ -18,11 +18,12 @@ takes longer than a frame). Nothing moves: no
 machine is opened. `sim://` shows the simulated bench's camera with the preset's optics and
 gauge length, in real time.
 
-It runs until SIGINT or SIGTERM, or for `--duration-s`, then closes the camera and the
-viewer and prints one summary line (frames, rate, the last frame's figures, the placement,
-what ended it); exit status 0. 1 when the camera cannot be opened or stops sending; 2 for
-bad input (one line naming it): no viewer sink, a bad URL, option or key. Without
-`--camera` the camera is `[camera] url` (`sim://camera` by default).
+It runs until SIGINT or SIGTERM, or for `--duration-s`, then finishes a placement under way
+(at most `PLACEMENT_FINISH_S`) and shows it, closes the camera and the viewer and prints one
+summary line (frames, rate, the last frame's figures, the placement, what ended it); exit
+status 0. 1 when the camera cannot be opened or stops sending; 2 for bad input (one line
+naming it): no viewer sink, a bad URL, option or key. Without `--camera` the camera is
+`[camera] url` (`sim://camera` by default).
 """
 
 from __future__ import annotations
@@ -40,9 +41,10 @@ from pathlib import Path
 import numpy as np
 
 from appliance.cli import arguments, device_checks
-from appliance.cli.detection_overlay import GaugeOverlay, gauge_overlay, overlay_quality
+from appliance.cli.detection_overlay import gauge_overlay, overlay_quality
 from appliance.config import CameraConfig, Config
 from appliance.errors import InputError
+from appliance.measure.gauge_overlay import GaugeOverlay
 from appliance.measure.speckle_quality import FrameQuality
 from appliance.rig import gauge_centre_in
 from appliance.run.object_plane import resolved_calibration_path
@@ -61,6 +63,10 @@ FETCH_TIMEOUTS_IN_A_ROW = 3
 PLACEMENT_PERIOD_S = 1.0
 """The gauge is placed again on a new frame at most this often, s: the specimen stands still
 while the camera is set up, and a detection costs more than a frame."""
+
+PLACEMENT_FINISH_S = 20.0
+"""At the end, a placement under way is waited for at most this long, s, so the summary and
+the viewer show the placement of a frame already streamed even on a busy host."""
 
 RATE_WINDOW_FRAMES = 10
 """Frames the frame rate is taken over (device clock)."""
@@ -213,6 +219,19 @@ class _PlacementWorker:
             done, self._done = self._done, None
             return done
 
+    def finish(self, timeout_s: float) -> GaugeOverlay | None:
+        """The placement under way or finished and not yet taken, waited for at most
+        `timeout_s`; None when there is none (or it did not finish in time)."""
+        deadline = time.monotonic() + timeout_s
+        with self._wanted:
+            while self._image is not None and self._done is None:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return None
+                self._wanted.wait(left)
+            done, self._done = self._done, None
+            return done
+
     def close(self, timeout_s: float = 10.0) -> None:
         with self._wanted:
             self._closing = True
@@ -231,6 +250,7 @@ class _PlacementWorker:
             with self._wanted:
                 self._done = overlay
                 self._image = None
+                self._wanted.notify_all()
 
 
 class PreviewSession:
@@ -279,7 +299,7 @@ class PreviewSession:
             HardwareConfigError: the camera refuses a setting.
             HardwareError: it cannot be opened, or sends nothing for three fetches in a row.
         """
-        from appliance.live.viewer.preview import PreviewPlacement, figures_of
+        from appliance.live.viewer.preview import figures_of
 
         c = self.config.camera
         settings = CameraSettings(
@@ -316,23 +336,7 @@ class PreviewSession:
                         self.lost += frame.frame_id - last_id - 1
                     last_id = frame.frame_id
                     image = np.asarray(frame.image)
-                    placed = worker.take()
-                    if placed is not None:
-                        self.last_placement = placed
-                        self.placements += 1
-                        self.viewer.show_placement(
-                            PreviewPlacement(
-                                lines=placed.lines,
-                                outline_px=placed.outline_px,
-                                axis_px=placed.axis_px,
-                                end_ticks_px=placed.end_ticks_px,
-                                ends_in_view=placed.ends_in_view,
-                                points_px=placed.points_px,
-                                marks_px=placed.marks_px,
-                                refused=placed.refused,
-                            ),
-                            self.config.tracking.subset_px,
-                        )
+                    self._show(worker.take())
                     if time.monotonic() >= next_placement:
                         worker.offer(image)
                         next_placement = time.monotonic() + PLACEMENT_PERIOD_S
@@ -345,11 +349,20 @@ class PreviewSession:
                     )
                     self.last_quality = quality
                     self.frames += 1
+                self._show(worker.finish(PLACEMENT_FINISH_S))
             finally:
                 self.camera.disarm()
         finally:
             worker.close()
             self.camera.close()
+
+    def _show(self, placed: GaugeOverlay | None) -> None:
+        """Stream a finished placement (nothing for None) and keep it for the summary."""
+        if placed is None:
+            return
+        self.last_placement = placed
+        self.placements += 1
+        self.viewer.show_placement(placed, self.config.tracking.subset_px)
 
     @property
     def frame_rate_hz(self) -> float | None:

@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +49,7 @@ from appliance.errors import InputError
 from appliance.live.viewer.layout import APPLICATION_ID, EVENTS, FRAME, IMAGE
 from appliance.live.viewer.output import has_sinks
 from appliance.live.viewer.server import RerunService, one_line
+from appliance.measure.gauge_overlay import GaugeOverlay
 from appliance.measure.speckle_quality import FrameQuality
 
 PREVIEW_TIME = "preview_time"
@@ -80,32 +80,6 @@ OUTLINE_COLOUR = (0, 200, 0)
 AXIS_COLOUR = (0, 120, 255)
 ENDS_COLOUR = (255, 220, 0)
 GAUGE_COLOUR = (255, 0, 0)
-
-
-@dataclass(frozen=True)
-class PreviewPlacement:
-    """What a test would place on a frame, as drawn over it (sensor pixels, (x, y)).
-
-    Attributes:
-        lines: the placement in words (the specimen found, the gauge and its length, or the
-            refusal); shown in `status/placement`.
-        outline_px: the specimen's outline, (N, 2); None when none was detected.
-        axis_px: the axis over the parallel length, its two ends, (2, 2).
-        end_ticks_px: a tick across the axis at each end of the parallel length, (2, 2, 2).
-        ends_in_view: whether each end was seen.
-        points_px: the points a test would track, (M, 2); None without a gauge.
-        marks_px: the marks' centres, (K, 2).
-        refused: the placement was refused (`lines` say why): no overlay is drawn.
-    """
-
-    lines: tuple[str, ...]
-    outline_px: np.ndarray | None = None
-    axis_px: np.ndarray | None = None
-    end_ticks_px: np.ndarray | None = None
-    ends_in_view: tuple[bool, bool] = (True, True)
-    points_px: np.ndarray | None = None
-    marks_px: np.ndarray | None = None
-    refused: bool = False
 
 
 class PreviewViewer:
@@ -197,7 +171,7 @@ class PreviewViewer:
                 self._stream.log(f"quality/{name}", rr.Scalars(float(value)))
         self.frames_shown += 1
 
-    def show_placement(self, placement: PreviewPlacement, subset_px: int) -> None:
+    def show_placement(self, placement: GaugeOverlay, subset_px: int) -> None:
         """Log a new placement over the frames from the last one shown (or why there is
         none: the overlays are cleared)."""
         stream = self._stream
