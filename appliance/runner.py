@@ -488,7 +488,7 @@ def _width_gauge(
     )
     try:
         return edge_width_gauge(image, first, second, calibration, count, centre.detection)
-    except EdgesNotFound as exc:
+    except (EdgesNotFound, ValueError) as exc:
         raise InputError(f"[transverse] stations: reference frame: {exc}") from None
 
 

@@ -67,7 +67,9 @@ class WidthReading:
         widths_mm: each station's width, mm (in px scaled, or on the specimen plane); NaN
             where the station is flagged.
         seen: whether each station's two edges were located.
-        mean_width_mm: mean of the widths of the stations seen; NaN when none is.
+        mean_width_mm: mean of the widths of the stations seen; NaN when none is. A station
+            dropping out steps it; the transverse strain, a mean of each station's own
+            w / w0, does not.
         transverse_strain: mean over the stations seen here and in the reference of
             w / w0 - 1; NaN when none is.
     """
@@ -195,6 +197,26 @@ class EdgeWidthGauge:
             seen=tuple(seen),
             mean_width_mm=float(np.mean(measured)) if measured else math.nan,
             transverse_strain=float(np.mean(strains)) if strains else math.nan,
+        )
+
+    def rezero(self, reading: WidthReading) -> WidthReading:
+        """Take `reading` (this gauge's reading of the frame a zero command applies to) as the
+        new reference widths, as the axial gauge takes its new gauge length: each station seen
+        in it starts again from its width there; a station not seen then has no reference any
+        more and stays flagged for the rest of the test (it is never given a guessed one).
+
+        Returns:
+            `reading` with its transverse strain re-expressed against the new references: 0
+            when a station was seen, NaN when none was.
+        """
+        for station, width in zip(self.stations, reading.widths_mm, strict=True):
+            station.width0_mm = width if math.isfinite(width) else math.nan
+        seen_any = any(math.isfinite(w) for w in reading.widths_mm)
+        return WidthReading(
+            widths_mm=reading.widths_mm,
+            seen=reading.seen,
+            mean_width_mm=reading.mean_width_mm,
+            transverse_strain=0.0 if seen_any else math.nan,
         )
 
     def _width_mm(self, first: np.ndarray, second: np.ndarray, station: _Station) -> float:

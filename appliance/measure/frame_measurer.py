@@ -219,6 +219,8 @@ class FrameMeasurer:
         if self.widths is not None:
             first, second = (tracked.positions[mark].mean(axis=0) for mark in self._axial_marks)
             width = self.widths.read(frame.image, first, second)
+            if zeroed:
+                width = self.widths.rezero(width)
         measured = tracked.measured
         marks_seen = all(measured[mark].any() for mark in self._axial_marks)
         detection = self.detection

@@ -93,3 +93,20 @@ def test_a_reference_frame_without_a_specimen_is_refused():
         edge_width_gauge(blank, (128.0, 100.0), (128.0, 400.0), Calibration(0.05), 3)
     with pytest.raises(ValueError, match="stations must be"):
         EdgeWidthGauge(blank, (128.0, 100.0), (128.0, 400.0), Calibration(0.05), 0, 50.0)
+
+
+def test_a_zero_restarts_each_station_from_its_width_in_the_zeroed_frame():
+    image, truth, first, second = _view(SCALE_MM_PER_PX, "back-lit")
+    gauge = EdgeWidthGauge(
+        image, first, second, Calibration(SCALE_MM_PER_PX), 3, 0.5 * truth.width_px + 3.0
+    )
+    wider, _, first_1, second_1 = _view(SCALE_MM_PER_PX / 1.01, "back-lit")
+    zeroed = gauge.rezero(gauge.read(wider, first_1, second_1))
+    assert zeroed.transverse_strain == 0.0
+    assert gauge.reference_widths_mm == pytest.approx(zeroed.widths_mm)
+    widest, _, first_2, second_2 = _view(SCALE_MM_PER_PX / 1.02, "back-lit")
+    reading = gauge.read(widest, first_2, second_2)
+    assert reading.transverse_strain == pytest.approx(1.02 / 1.01 - 1.0, rel=0.01)
+    assert gauge.read(image, first, second).transverse_strain == pytest.approx(
+        1.0 / 1.01 - 1.0, rel=0.01
+    )
