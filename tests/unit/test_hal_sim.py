@@ -321,3 +321,30 @@ def test_a_real_time_camera_buffers_the_frames_a_busy_host_has_not_fetched(busy_
 def test_a_sim_camera_needs_a_buffer():
     with pytest.raises(HardwareConfigError, match="buffers=0"):
         camera_from_url("sim://camera", scene=RampScene(), clock=SimClock(), buffers=0)
+
+
+def test_the_noise_is_white_within_a_frame_and_independent_between_frames():
+    """Flat frames' noise: no correlation between a pixel and its neighbours, and none between
+    consecutive frames (or two seeds' frames) at any offset of the pixels' order, as a sum of
+    independent draws would show (largest |r| within 7 / sqrt(pixels))."""
+    signal = np.full((256, 256), 100.0, dtype=np.float32)
+    noise = {
+        "gain_db": 0.0,
+        "electrons_per_grey": 0.0,
+        "read_noise_grey": 3.0,
+        "pixel_format": PixelFormat.MONO16,
+    }
+
+    def frame(seed, index):
+        counts = digitise(signal, frame_noise_key(seed, index), **noise).astype(float)
+        return (counts - counts.mean()) / counts.std()
+
+    first, second, other_seed = frame(1, 0), frame(1, 1), frame(2, 0)
+    bound = 7.0 / np.sqrt(signal.size)
+    for dy, dx in ((0, 1), (1, 0), (1, 1), (0, 2), (2, 0)):
+        r = np.mean(first[dy:, dx:] * first[: first.shape[0] - dy, : first.shape[1] - dx])
+        assert abs(r) < bound, (dy, dx, r)
+    spectrum = np.fft.rfft(first.ravel())
+    for later in (second, other_seed):
+        lagged = np.fft.irfft(np.conj(spectrum) * np.fft.rfft(later.ravel()), n=first.size)
+        assert np.max(np.abs(lagged)) / first.size < bound
