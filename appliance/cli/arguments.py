@@ -45,6 +45,19 @@ def _number(parse: Callable[[str], Any], accept: Callable[[Any], bool], requirem
     return convert
 
 
+def output_directory(text: str) -> Path:
+    """An argparse type for a directory a command writes into: one that exists, or can be made
+    (nothing on its path is a file); checked before the command's work starts, so a long
+    benchmark does not end in an error it could have given first."""
+    path = Path(text)
+    for part in (path, *path.parents):
+        if part.exists():
+            if not part.is_dir():
+                raise argparse.ArgumentTypeError(f"{part} is not a directory")
+            break
+    return path
+
+
 def within(parse: Callable[[str], Any], low: float, high: float, *, above: bool = False):
     """An argparse type for a value of physical range `low` .. `high` (inclusive; with `above`
     the value must exceed `low`)."""

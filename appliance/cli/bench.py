@@ -225,7 +225,7 @@ def _add_soak(benches: argparse._SubParsersAction) -> None:
 def _add_out(parser: argparse.ArgumentParser, *, required: bool = False) -> None:
     parser.add_argument(
         "--out",
-        type=Path,
+        type=arguments.output_directory,
         required=required,
         metavar="DIR",
         help="results directory: the report, the figures as JSON, and the directory's index",

@@ -47,7 +47,10 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
         "--config", type=Path, metavar="OVERRIDE", help="TOML tables replacing recorded keys"
     )
     replay.add_argument(
-        "--out", type=Path, metavar="DIR", help="output directory for report.html, summary.json"
+        "--out",
+        type=arguments.output_directory,
+        metavar="DIR",
+        help="output directory for report.html, summary.json",
     )
     arguments.add_rerun_options(replay)
     replay.add_argument("--json", action="store_true", help="print the summary as JSON, quietly")

@@ -64,7 +64,11 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
     pace = run.add_mutually_exclusive_group()
     pace.add_argument("--realtime", action="store_true", help="simulate in real time")
     pace.add_argument("--fast", action="store_true", help="simulate as fast as possible")
-    run.add_argument("--out", type=Path, help="output directory for strain.csv, summary.json")
+    run.add_argument(
+        "--out",
+        type=arguments.output_directory,
+        help="output directory for strain.csv, summary.json",
+    )
     run.add_argument(
         "--record", type=Path, metavar="FILE.mcap", help="record the test to a new MCAP file"
     )

@@ -71,7 +71,9 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         help="a real calibrator's readings: series, calibrator_um, reading_um[, gauge_length_mm]",
     )
     parser.add_argument("--config", type=Path, help="TOML configuration file (default: defaults)")
-    parser.add_argument("--out", type=Path, required=True, help="output directory")
+    parser.add_argument(
+        "--out", type=arguments.output_directory, required=True, help="output directory"
+    )
     parser.add_argument(
         "--class",
         dest="extensometer_class",

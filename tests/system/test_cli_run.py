@@ -98,6 +98,7 @@ def test_the_simulated_world_is_deterministic_for_a_seed(tmp_path):
         (["--sim", "--exposure-us", "fast"], "--exposure-us"),
         (["--sim", "--config", "absent.toml"], "absent.toml"),
         (["--until-strain", "0.1"], "--sim"),
+        (["--sim", "--out", "/dev/null/run"], "--out: /dev/null is not a directory"),
     ],
 )
 def test_bad_values_give_one_line_naming_the_culprit(args, culprit):

@@ -32,3 +32,15 @@ def test_help(command: tuple[str, ...], capsys: pytest.CaptureFixture[str]) -> N
         main([*command, "--help"])
     assert end.value.code == 0
     assert "usage: extensometer" in capsys.readouterr().out
+
+
+def test_an_output_directory_that_is_a_file_is_refused_before_the_work_starts(tmp_path):
+    from appliance.cli.arguments import output_directory
+
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    assert output_directory(str(tmp_path / "new" / "dir")) == tmp_path / "new" / "dir"
+    assert output_directory(str(tmp_path)) == tmp_path
+    for culprit in (afile, afile / "below"):
+        with pytest.raises(argparse.ArgumentTypeError, match=f"{afile} is not a directory"):
+            output_directory(str(culprit))
