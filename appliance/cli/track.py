@@ -126,8 +126,9 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
         type=_stretch_range,
         default=None,
         metavar="LOW:HIGH",
-        help="expected one-step strain range, e.g. 0:0.5: every point is searched over "
-        "pre-warped subsets of that range (default: none; missed points are recovered)",
+        help="expected one-step strain range, e.g. 0:0.5 (a negative LOW as "
+        "--stretch=-0.2:0.3): every point is searched over pre-warped subsets of that range "
+        "(default: none; missed points are recovered)",
     )
     track.add_argument(
         "--stretch-axis", choices=STRETCH_AXES, default="x", help="direction of that stretch (x)"

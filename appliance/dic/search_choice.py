@@ -99,10 +99,12 @@ def choose_search(
 
     Args:
         blur_px: the targets' known motion blur, px (0 = sharp or unknown).
-        blur_angle_deg: its direction, degrees.
+        blur_angle_deg: its direction, degrees; the choice does not depend on it (ZNCC against
+            a reference blurred to match is chosen at any angle), taken for the same call as
+            `explicit_search`.
         stretch: expected one-step strain range (low, high), or None (untold).
         stretch_axis: "x" or "y".
-        subset: subset side, px.
+        subset: subset side, px; the choice does not depend on it either (as `blur_angle_deg`).
 
     Returns:
         `SearchChoice` with method "zncc".

@@ -466,8 +466,8 @@ REGISTER_MAP: tuple[Register, ...] = (
         RegisterType.FLOAT32,
         Access.READ,
         "1",
-        "Poisson's ratio from the width, -width_transverse_strain / e_axial (NaN below 1e-4 "
-        "axial strain or without a width)",
+        "Contraction ratio from the width, -width_transverse_strain / e_axial: Poisson's "
+        "ratio in the elastic range only (NaN below 1e-4 axial strain or without a width)",
     ),
     *(
         Register(
