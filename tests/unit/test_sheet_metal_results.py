@@ -73,3 +73,18 @@ def test_a_test_that_stops_short_of_the_range_gives_no_r_nor_n():
     assert not results["r"].is_determined and "12 %" in results["r"].reason
     assert not results["n"].is_determined and "10 %" in results["n"].reason
     assert math.isfinite(results["nu"].value)
+
+
+def test_without_a_modulus_r_and_n_neglect_the_elastic_strain_and_say_so():
+    strain, force, width = _sheet(0.3, 1.8, 0.22)
+    plastic_only = force / AREA_MM2 > 210.0
+    series = TestSeries.of(
+        strain[plastic_only], force[plastic_only], transverse_strain=width[plastic_only]
+    )
+    results = metal_results(series, AREA_MM2, broke=False)
+    assert not results["E"].is_determined
+    assert not results["nu"].is_determined and "no modulus E" in results["nu"].reason
+    assert results["r"].value == pytest.approx(1.8, abs=0.03)
+    assert results["n"].value == pytest.approx(0.22, abs=0.01)
+    for symbol in ("r", "n"):
+        assert "elastic strain neglected (no modulus E" in results[symbol].basis
