@@ -42,7 +42,7 @@ from pathlib import Path
 from typing import Any
 
 from appliance.bench.optics_calibration import Calibrations, calibration_trials
-from appliance.bench.optics_report import report
+from appliance.bench.optics_report import SECTION_KEYS, report
 from appliance.bench.results import command_line, write_report
 from appliance.config import Config
 from appliance.errors import InputError
@@ -303,7 +303,7 @@ def calibration_cases(out: Path, plan: Plan, calibrations: Calibrations) -> dict
     )
 
 
-SECTIONS = ("calibration", "rubber", "metal", "verify")
+SECTIONS = SECTION_KEYS
 """The sections `--only` can measure again on their own."""
 
 

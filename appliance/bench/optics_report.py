@@ -6,17 +6,31 @@ from typing import Any
 
 from appliance.bench.optics_calibration import TARGETS
 
+SECTION_KEYS = ("calibration", "rubber", "metal", "verify")
+"""The report's sections, as the figures name them."""
+
 
 def report(figures: dict[str, Any]) -> str:
     """The report's body: one section per target, each figure with its target and verdict."""
     mode = "quick (fewer calibrations, shortened tests)" if figures["mode"] == "quick" else "full"
-    remeasured = "".join(
-        f" Section {r['section']} measured again on {r['measured_utc']} ({r['wall_s']:.0f} s, "
-        f"`{r['command']}`); the others on {figures['first_measured_utc']}."
-        for r in figures.get("remeasured", [])
-    )
+    latest = {r["section"]: r for r in figures.get("remeasured", [])}
+    remeasured = ""
+    if latest:
+        remeasured = (
+            " Sections measured again (the latest of each): "
+            + "; ".join(
+                f"{r['section']} on {r['measured_utc']} ({r['wall_s']:.0f} s, `{r['command']}`)"
+                for r in sorted(latest.values(), key=lambda r: r["measured_utc"])
+            )
+            + (
+                f"; the others as first measured on {figures['first_measured_utc']}."
+                if len(latest) < len(SECTION_KEYS)
+                else "."
+            )
+        )
+    first = "first measured" if latest else "measured"
     parts = [
-        f"Mode: {mode}; {figures['wall_s']:.0f} s in all.{remeasured} Errors are against the "
+        f"Mode: {mode}; {first} in {figures['wall_s']:.0f} s.{remeasured} Errors are against the "
         "simulated world's ground truth (the specimen plane's material points); every "
         "calibration is made by the product's calibration from simulated ChArUco views of the "
         "bench's lens, "
