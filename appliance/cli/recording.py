@@ -48,7 +48,7 @@ def add_parsers(commands: argparse._SubParsersAction) -> None:
     )
     replay.add_argument(
         "--out",
-        type=arguments.output_directory,
+        type=Path,
         metavar="DIR",
         help="output directory for report.html, summary.json",
     )
