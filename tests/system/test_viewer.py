@@ -280,8 +280,17 @@ def test_a_full_queue_drops_and_counts_samples_and_never_blocks_the_measurement(
     assert result["viewer_samples_dropped"] == viewer.samples_dropped
 
 
-def _thread_count() -> int:
-    return len(os.listdir("/proc/self/task"))
+def _settled_thread_count(window_s: float = 1.0) -> int:
+    """The fewest threads seen over ``window_s``.
+
+    A thread still winding down is not counted; a kept one is.
+    """
+    fewest = len(os.listdir("/proc/self/task"))
+    deadline = time.monotonic() + window_s
+    while time.monotonic() < deadline:
+        time.sleep(0.05)
+        fewest = min(fewest, len(os.listdir("/proc/self/task")))
+    return fewest
 
 
 def test_a_served_viewer_keeps_no_thread_of_a_finished_test(tmp_path):
@@ -300,7 +309,7 @@ def test_a_served_viewer_keeps_no_thread_of_a_finished_test(tmp_path):
                 viewer(sample)
             viewer.end(recorded.result)
             assert viewer.problem is None and viewer.samples_shown == len(recorded.samples)
-            counts.append(_thread_count())
+            counts.append(_settled_thread_count())
     finally:
         viewer.close()
     assert counts[-1] <= counts[1], counts
