@@ -45,25 +45,19 @@ def stretched(tmp_path_factory):
     return root, np.c_[x - points[:, 0], y - points[:, 1]]
 
 
-def run_track(root: Path, *options: str) -> dict:
-    done = subprocess.run(
-        [
-            EXTENSOMETER,
-            "track",
-            root / "ref.png",
-            root / "tgt.png",
-            "--points",
-            root / "points.csv",
-            "--json",
-            "--threads",
-            "1",
-            *options,
-        ],
+def _track(root: Path, *options: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [EXTENSOMETER, "track", root / "ref.png", root / "tgt.png", "--points", root / "points.csv"]
+        + list(options),
         capture_output=True,
         text=True,
         timeout=300,
         check=False,
     )
+
+
+def run_track(root: Path, *options: str) -> dict:
+    done = _track(root, "--json", "--threads", "1", *options)
     assert done.returncode == 0, done.stderr
     return json.loads(done.stdout)
 
@@ -113,22 +107,7 @@ def test_lpq_reports_the_window_of_the_blur_rule(stretched):
 
 def test_a_malformed_stretch_range_is_one_line_naming_the_option(stretched):
     root, _ = stretched
-    done = subprocess.run(
-        [
-            EXTENSOMETER,
-            "track",
-            root / "ref.png",
-            root / "tgt.png",
-            "--points",
-            root / "points.csv",
-            "--stretch",
-            "0.5",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
+    done = _track(root, "--stretch", "0.5")
     assert done.returncode == 2
     lines = done.stderr.strip().splitlines()
     assert "--stretch" in lines[-1] and "LOW:HIGH" in lines[-1]
