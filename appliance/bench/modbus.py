@@ -260,16 +260,28 @@ def _figures(run: Mapping[str, Any]) -> dict[str, Any]:
     )
     client = run["client"]
     if client is not None:
-        seen = [(t, f) for t, f in client["seen"] if f in updated_at]
-        figures["client"] = {
-            "poll_interval_ms": POLL_INTERVAL_S * 1e3,
-            "requests": len(client["rtt_s"]),
-            "round_trip_ms": percentiles_ms(client["rtt_s"]),
-            "delivery_to_seen_ms": percentiles_ms([t - delivered[f] for t, f in seen]),
-            "register_to_seen_ms": percentiles_ms([t - updated_at[f] for t, f in seen]),
-            "frames_seen": len(seen),
-        }
+        figures["client"] = client_figures(client, delivered, updated_at, POLL_INTERVAL_S)
     return figures
+
+
+def client_figures(
+    client: Mapping[str, Any],
+    delivered: Mapping[int, float],
+    updated_at: Mapping[int, float],
+    poll_interval_s: float,
+) -> dict[str, Any]:
+    """What the polling client saw (its `poll` output), against the frames' delivery and
+    register-update stamps (perf_counter, s) by frame id: its requests and round trip, and
+    delivery -> seen and register update -> seen over the frames it saw first."""
+    seen = [(t, f) for t, f in client["seen"] if f in updated_at and f in delivered]
+    return {
+        "poll_interval_ms": poll_interval_s * 1e3,
+        "requests": len(client["rtt_s"]),
+        "round_trip_ms": percentiles_ms(client["rtt_s"]),
+        "delivery_to_seen_ms": percentiles_ms([t - delivered[f] for t, f in seen]),
+        "register_to_seen_ms": percentiles_ms([t - updated_at[f] for t, f in seen]),
+        "frames_seen": len(seen),
+    }
 
 
 def _in_tracker_medians(
@@ -386,8 +398,9 @@ def run_modbus_benchmark(out: Path | None, as_json: bool, *, frames: int = 500) 
     return 0
 
 
-def _poll(port: int) -> None:
-    """The polling client (its own process): new frame ids with the time they were seen."""
+def _poll(port: int, interval_s: float = POLL_INTERVAL_S) -> None:
+    """The polling client (its own process): new frame ids with the time they were seen; a
+    new request `interval_s` after the previous answer."""
     from pymodbus.client import ModbusTcpClient
 
     from appliance.live.modbus_map import BY_NAME, decode
@@ -415,13 +428,16 @@ def _poll(port: int) -> None:
             if frame != last:
                 seen.append((answered, frame))
                 last = frame
-        time.sleep(max(0.0, POLL_INTERVAL_S - (time.perf_counter() - answered)))
+        time.sleep(max(0.0, interval_s - (time.perf_counter() - answered)))
     client.close()
     print(json.dumps({"seen": seen, "rtt_s": round_trips}), flush=True)
 
 
 if __name__ == "__main__":
-    if len(sys.argv) == 3 and sys.argv[1] == "poll":
-        _poll(int(sys.argv[2]))
+    if len(sys.argv) in (3, 4) and sys.argv[1] == "poll":
+        _poll(int(sys.argv[2]), *(float(value) for value in sys.argv[3:]))
     else:
-        sys.exit("usage: python -m appliance.bench.modbus poll PORT (the benchmark's client)")
+        sys.exit(
+            "usage: python -m appliance.bench.modbus poll PORT [INTERVAL_S] "
+            "(the benchmarks' client)"
+        )
