@@ -15,8 +15,13 @@ Conventions the map follows:
   `big` puts the most significant word first (ABCD for a float), `little` the least
   significant first (CDAB). Bytes within a register are always big-endian, as Modbus says.
 * uint16 values are the register itself; counters wrap to 0 after their largest value.
-* The reserved block between the measurement block and the command block reads 0 and refuses
-  writes, so a controller can read addresses 0 ... 104 in one request (105 <= 125 registers).
+* The last test's results (57 ... 89, `RESULT_BLOCK`) follow the measurement block: a
+  `results_valid` flag, a counter of results published and the standard, then the results as
+  float32 (NaN: not determined). They are written in the same update as `exit_status` when a
+  test ends, and cleared when the next one begins, so they always belong to the test that
+  `exit_status` describes.
+* The reserved block before the command block (90 ... 99) reads 0 and refuses writes, so a
+  controller can read addresses 0 ... 104 in one request (105 <= 125 registers).
 * A read may start or end in the middle of a multi-register value (it is a plain register
   read); a write must cover every writable value it touches completely.
 
@@ -279,6 +284,114 @@ _RESULT_TEXT = "Result of the last command or set point write: " + _codes(
     [(int(r), t) for r, t in COMMAND_RESULT_MEANINGS.items()]
 )
 
+
+class ResultsStandard(enum.IntEnum):
+    """Codes of the `results_standard` register: the standard the test's results follow."""
+
+    NONE = 0
+    ISO_6892_1 = 1
+    ISO_37 = 2
+
+
+RESULTS_STANDARD_CODES: Mapping[str, ResultsStandard] = {
+    "ISO 6892-1": ResultsStandard.ISO_6892_1,
+    "ISO 37": ResultsStandard.ISO_37,
+}
+"""The summary's `results.standard` -> code of the `results_standard` register (anything
+else: NONE)."""
+
+_RESULTS_VALID_TEXT = (
+    "1: the result registers (59 ... 89) hold the results of the test that ended last, the "
+    "one `exit_status` describes (written in the same update as `exit_status`); 0: they hold "
+    "none: no test has ended yet, a test is under way (they are cleared when it begins), or "
+    "the last test ended without results (it did not start, or failed)"
+)
+_RESULTS_STANDARD_TEXT = "Standard of the results: " + _codes(
+    [(0, "none (no results, or no `[specimen] material`)"), (1, "ISO 6892-1 (metal)")]
+    + [(2, "ISO 37 (rubber)")]
+)
+_RESULT_FLOATS: tuple[tuple[str, str, str], ...] = (
+    (
+        "result_modulus_mpa",
+        "MPa",
+        "Modulus of elasticity E (ISO 6892-1): least-squares line of stress on strain through "
+        "the loading samples between 10 % and 50 % of the yield strength",
+    ),
+    (
+        "result_rp02_mpa",
+        "MPa",
+        "Proof strength Rp0.2 (ISO 6892-1): stress at 0.2 % plastic extension from the modulus "
+        "line, interpolated between samples",
+    ),
+    (
+        "result_reh_mpa",
+        "MPa",
+        "Upper yield strength ReH (ISO 6892-1), only with discontinuous yielding",
+    ),
+    (
+        "result_rel_mpa",
+        "MPa",
+        "Lower yield strength ReL (ISO 6892-1), only with discontinuous yielding",
+    ),
+    (
+        "result_rm_mpa",
+        "MPa",
+        "Tensile strength Rm (ISO 6892-1): the largest stress, once the force has fallen 0.5 % "
+        "below it or the specimen broke",
+    ),
+    (
+        "result_ag",
+        "1",
+        "Plastic extension at maximum force Ag (ISO 6892-1), 1 = 100 %",
+    ),
+    (
+        "result_a",
+        "1",
+        "Elongation after fracture A from the extensometer (ISO 6892-1), 1 = 100 %: the "
+        "plastic extension of the last valid sample before the fracture; only after a break",
+    ),
+    (
+        "result_poisson_ratio",
+        "1",
+        "Poisson's ratio nu of a metal: minus the slope of transverse on axial strain over the "
+        "samples E was fitted over (the elastic range)",
+    ),
+    (
+        "result_r_8_12",
+        "1",
+        "Plastic strain ratio r_8-12 (ISO 10113, linear regression): plastic width strain on "
+        "plastic length strain over 8 % to 12 % engineering strain, thickness strain by "
+        "constant volume",
+    ),
+    (
+        "result_n",
+        "1",
+        "Strain hardening exponent n (ISO 10275): slope of ln true stress on ln true plastic "
+        "strain over 10 % to 20 % engineering strain, or from 10 % to the strain at maximum "
+        "force when it comes first",
+    ),
+    (
+        "result_tensile_strength_mpa",
+        "MPa",
+        "Tensile strength TS (ISO 37): the largest stress; only after a break",
+    ),
+    (
+        "result_elongation_at_break",
+        "1",
+        "Elongation at break Eb (ISO 37), 1 = 100 %: the strain of the last valid sample "
+        "before the break",
+    ),
+    *(
+        (
+            f"result_s{percent}_mpa",
+            "MPa",
+            f"Stress at {percent} % elongation S{percent} (ISO 37), interpolated between samples",
+        )
+        for percent in (100, 200, 300)
+    ),
+)
+"""The test's results served as float32: (register name, unit, what it is and how taken)."""
+
 REGISTER_MAP: tuple[Register, ...] = (
     Register(
         "axial_strain",
@@ -481,10 +594,36 @@ REGISTER_MAP: tuple[Register, ...] = (
         )
         for k in range(1, WIDTH_STATIONS_SERVED + 1)
     ),
+    Register("results_valid", 57, 1, RegisterType.UINT16, Access.READ, "", _RESULTS_VALID_TEXT),
+    Register(
+        "results_counter",
+        58,
+        1,
+        RegisterType.UINT16,
+        Access.READ,
+        "",
+        "Counts the results published, one for every test that ended with its results "
+        "(wraps; 0 none yet): a new value says the result registers hold a new test's results",
+    ),
+    Register(
+        "results_standard", 59, 1, RegisterType.UINT16, Access.READ, "", _RESULTS_STANDARD_TEXT
+    ),
+    *(
+        Register(
+            name,
+            60 + 2 * k,
+            2,
+            RegisterType.FLOAT32,
+            Access.READ,
+            unit,
+            f"{text}; NaN: not determined in this test (the summary's `results` says why)",
+        )
+        for k, (name, unit, text) in enumerate(_RESULT_FLOATS)
+    ),
     Register(
         "reserved",
-        57,
-        43,
+        90,
+        10,
         RegisterType.RESERVED,
         Access.READ,
         "",
@@ -539,6 +678,16 @@ MEASUREMENT_BLOCK: tuple[Register, ...] = tuple(
     r for r in REGISTER_MAP if r.end <= BY_NAME["exit_status"].address
 )
 """The fixed block at 0 ... 29 that every sample rewrites (everything before `exit_status`)."""
+
+
+RESULT_BLOCK: tuple[Register, ...] = tuple(r for r in REGISTER_MAP if r.name.startswith("result"))
+"""The last test's results (57 ... 89): written when a test ends, in the same update as
+`exit_status`, and cleared (NaN, `results_valid` 0) when the next test begins."""
+RESULT_VALUES: tuple[Register, ...] = tuple(
+    r for r in RESULT_BLOCK if r.name not in ("results_valid", "results_counter")
+)
+"""The part of `RESULT_BLOCK` that holds one test's results (59 ... 89): the standard and the
+float32 values."""
 
 
 def encode(register: Register, value: Value, word_order: WordOrder = "big") -> list[int]:

@@ -16,6 +16,10 @@ measurement never waits for the network:
   heartbeat while no frames come, so the controller sees the appliance alive;
   `set_camera_lost(lost)` clears data-valid and sets `camera lost` while the camera is away
   (no samples come then, so the latest one must not stay flagged valid).
+* `set_exit_status(status, results)` says how the last test ended and writes its results
+  (`appliance.live.result_registers`) in the same update, `results_valid` set and
+  `results_counter` moved; `set_exit_status(None)` when the next test begins clears both, so
+  the result registers never show another test's results than the one `exit_status` describes.
 * A client's command write calls `on_command(name, value)` on the server's thread:
   ("start" | "stop" | "zero", None) or ("gauge_length", mm). It returns whether the command
   was accepted in the current run state (`command_result`, `command_counter`); it must return
@@ -79,7 +83,7 @@ import math
 import os
 import socket
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import TimeoutError as FutureTimeoutError
 from typing import TYPE_CHECKING, Any
 
@@ -102,6 +106,7 @@ from appliance.live.modbus_map import (
     MAP_SIZE,
     MEASUREMENT_BLOCK,
     REGISTER_MAP,
+    RESULT_VALUES,
     RUN_STATE_CODES,
     SERVED_FUNCTION_CODES,
     WIDTH_BLOCK,
@@ -110,6 +115,7 @@ from appliance.live.modbus_map import (
     RegisterType,
     StatusBit,
 )
+from appliance.live.result_registers import CLEARED
 from appliance.live.throttled_log import ThrottledLog
 from appliance.measure.gauges import POISSON_MIN_AXIAL_STRAIN
 from appliance.run.state import ExitStatus, RunState
@@ -255,11 +261,13 @@ class StrainRegisterServer:
         self._frames_dropped = 0
         self._heartbeat = 0
         self._command_counter = 0
+        self._results_counter = 0
         self._entries = [modbus_map.register_at(address) for address in range(MAP_SIZE)]
         self._status_at = BY_NAME["status"].address
         self._heartbeat_at = BY_NAME["heartbeat"].address
         self._run_state_at = BY_NAME["run_state"].address
         self._exit_status_at = BY_NAME["exit_status"].address
+        self._results_at = RESULT_VALUES[0].address
         self._sample_parts = self._contiguous_parts(_SAMPLE_BLOCK)
         self._width_parts = self._contiguous_parts(WIDTH_BLOCK)
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -271,7 +279,7 @@ class StrainRegisterServer:
         self._decoder = DecodePDU(True)
         self._log = ThrottledLog(_log)
         self._closed = False
-        for register in (*MEASUREMENT_BLOCK, *WIDTH_BLOCK):
+        for register in (*MEASUREMENT_BLOCK, *WIDTH_BLOCK, *RESULT_VALUES):
             if register.data_type is RegisterType.FLOAT32:
                 self._put(register, math.nan)
         self._put(BY_NAME["gauge_length_setpoint_mm"], gauge_length_setpoint_mm)
@@ -399,11 +407,29 @@ class StrainRegisterServer:
                 self._put(BY_NAME["frames_dropped"], 0)
             self._write_state_registers()
 
-    def set_exit_status(self, status: ExitStatus | None) -> None:
-        """How the last test ended (None: none yet, or a test is under way)."""
+    def set_exit_status(
+        self, status: ExitStatus | None, results: Mapping[str, float | int] | None = None
+    ) -> None:
+        """How the last test ended (None: none yet, or a test is under way) and its results,
+        in one update.
+
+        Args:
+            status: how the test ended; None when the next test begins.
+            results: the values of `modbus_map.RESULT_VALUES`
+                (`result_registers.result_register_values`); None = no results: the
+                result registers are cleared (NaN) and `results_valid` reads 0. Given, they
+                are written, `results_valid` reads 1 and `results_counter` moves on.
+        """
+        values = CLEARED if results is None else {**CLEARED, **results}
+        words = modbus_map.encode_block(RESULT_VALUES, values, self._word_order)
         with self._lock:
             code = EXIT_STATUS_CODES[status] if status is not None else 0
             self._image[self._exit_status_at] = code
+            self._image[self._results_at : self._results_at + len(words)] = words
+            if results is not None:
+                self._results_counter = (self._results_counter + 1) & 0xFFFF
+                self._image[BY_NAME["results_counter"].address] = self._results_counter
+            self._image[BY_NAME["results_valid"].address] = int(results is not None)
             self._beat()
 
     def set_camera_lost(self, lost: bool) -> None:

@@ -79,7 +79,7 @@ def test_fixed_block_and_command_block_are_at_the_documented_addresses():
     ]
     assert width[5:] == [(f"width_{k}_mm", 39 + 2 * k, 2) for k in range(1, 9)]
     reserved = BY_NAME["reserved"]
-    assert (reserved.address, reserved.end, reserved.access) == (57, 100, Access.READ)
+    assert (reserved.address, reserved.end, reserved.access) == (90, 100, Access.READ)
     writable = {r.name for r in REGISTER_MAP if r.writable}
     assert writable == {"command", "gauge_length_setpoint_mm"}
     assert BY_NAME["command"].choices == (1, 2, 3)
