@@ -6,7 +6,8 @@ Run as a program::
         --width 512 --height 512 --strain-rate 0.01 --max-strain 0.1 --hold-s 0 \\
         --seed 7 --truth truth.jsonl
 
-It serves an in-process ``Aravis.GvFakeCamera`` on ADDRESS (which must be an address of an
+It serves an in-process ``Aravis.GvFakeCamera`` whose frames it draws
+(``appliance.sim.gige_camera.DrawnGigECamera``) on ADDRESS (which must be an address of an
 interface: add it to ``lo`` inside the test's namespace) and prints one line
 ``READY ADDRESS SERIAL WIDTHxHEIGHT`` on stdout once it answers GVCP. It runs until SIGTERM
 or SIGINT, then restores the fake's own fill pattern, deletes the camera explicitly and exits
@@ -14,8 +15,9 @@ with status 0. Any client opens it by address (``aravis://127.0.0.2``) and drive
 fake camera it is (Width/Height/Offset, PixelFormat Mono8 or Mono16, AcquisitionFrameRate,
 software trigger); ``tests.system.aravis_peers.specimen_camera`` starts and stops it.
 
-The scene: a speckle coat (``appliance.dic.synthetic.dense_speckle``, speckle radius 2.5 px,
-rendered analytically once at twice the resolution) on a WIDTH x HEIGHT sensor. At device
+The scene (``appliance.sim.stretched_speckle.StretchedSpecimen``): a speckle coat
+(``appliance.dic.synthetic.dense_speckle``, speckle radius 2.5 px, rendered analytically once
+at twice the resolution) on a WIDTH x HEIGHT sensor. At device
 time t the specimen is stretched along the image's vertical axis about the centre row
 ``cy = (HEIGHT - 1) / 2``: the material point at reference row Y is seen at row
 ``cy + (Y - cy) * (1 + e(t))``, columns unchanged, with the engineering strain
@@ -34,10 +36,9 @@ the parameters, then one record per rendered frame, written before the frame is 
 
 (``trigger_edge``: with a trigger wire, the number of the firmware pulse the frame answers.)
 
-The mapping to received frames is exact: Aravis' fake camera sets the buffer's frame id and
-timestamp before it calls the fill pattern (the callback reads them through
-``arv_buffer_get_frame_id`` and ``arv_buffer_get_timestamp``), and sends both in the GVSP
-leader, so a frame received through ``hal.camera.aravis.AravisCamera`` has
+The mapping to received frames is exact (``appliance.sim.gige_camera``): Aravis' fake camera
+sets the buffer's frame id and timestamp before it asks for the pixels, and sends both in the
+GVSP leader, so a frame received through ``hal.camera.aravis.AravisCamera`` has
 ``timestamp_ns`` equal to the record's ``timestamp_ns`` (device time: the fake's real-time
 clock, microsecond resolution) and ``metadata["device_frame_id"]`` equal to its
 ``frame_id`` (16 bits, wrapping after 65535 to 1; the timestamp is the unambiguous key).
@@ -53,18 +54,11 @@ the last one is not taken yet is lost, as a busy camera ignores one). The client
 with EXTERNAL triggering) and never sends a software trigger itself. The latency from edge to
 exposure (the log, this process's polling, the camera's millisecond) is a few ms; frames keep
 their device timestamps, so the truth log stays exact.
-
-Why ctypes: setting the fill pattern through PyGObject with a Python callback crashes, so
-``arv_fake_camera_set_fill_pattern`` is called through ctypes on the GvFakeCamera's
-underlying ArvFakeCamera, with a ctypes callback kept referenced for the camera's life. The
-callback uses the region's width * height (the buffer's data size is not set when the fill
-pattern runs).
 """
 
 from __future__ import annotations
 
 import argparse
-import ctypes
 import json
 import signal
 import sys
@@ -73,101 +67,18 @@ import time
 from pathlib import Path
 from typing import IO, Any
 
-import cv2
 import numpy as np
 
-OVERSAMPLE = 2
-SPECKLE_RADIUS_PX = 2.5
-SPECKLE_DENSITY = 0.25
-"""Speckles per square pixel at camera scale (`dense_speckle`'s default)."""
-
-MONO8 = 0x01080001
-MONO16 = 0x01100007
-"""GenICam PFNC codes of the pixel formats the camera renders."""
-
-FillPattern = ctypes.CFUNCTYPE(
-    None, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32, ctypes.c_uint32
-)
-"""ArvFakeCameraFillPattern: (buffer, user data, exposure_us, gain, pixel format)."""
-
-
-class StretchedSpecimen:
-    """The speckle coat and the stretch: renders the sensor region at a given strain.
-
-    Args:
-        width, height: sensor size, px.
-        seed: seed of the speckle pattern.
-    """
-
-    def __init__(self, width: int, height: int, seed: int) -> None:
-        from appliance.dic import synthetic
-
-        fine_width, fine_height = OVERSAMPLE * width, OVERSAMPLE * height
-        pattern = synthetic.dense_speckle(
-            fine_width,
-            fine_height,
-            seed=seed,
-            radius=OVERSAMPLE * SPECKLE_RADIUS_PX,
-            density=SPECKLE_DENSITY / OVERSAMPLE**2,
-        )
-        self.coat = synthetic.render(pattern, fine_height, fine_width).astype(np.float32)
-        self.width = width
-        self.height = height
-        self.centre_y = (height - 1) / 2.0
-
-    def render(self, x: int, y: int, width: int, height: int, strain: float) -> np.ndarray:
-        """Grey values (8-bit scale, float32) of the region at `strain`.
-
-        Sensor pixel (X, Y) shows reference point (X, cy + (Y - cy) / (1 + strain)); a camera
-        pixel centre c lies at OVERSAMPLE * c + (OVERSAMPLE - 1) / 2 on the fine coat.
-        """
-        half = (OVERSAMPLE - 1) / 2.0
-        columns = OVERSAMPLE * np.arange(x, x + width, dtype=np.float32) + half
-        rows = np.arange(y, y + height, dtype=np.float64)
-        reference_rows = self.centre_y + (rows - self.centre_y) / (1.0 + strain)
-        fine_rows = (OVERSAMPLE * reference_rows + half).astype(np.float32)
-        map_x = np.broadcast_to(columns[None, :], (height, width))
-        map_y = np.broadcast_to(fine_rows[:, None], (height, width))
-        return cv2.remap(
-            self.coat,
-            np.ascontiguousarray(map_x),
-            np.ascontiguousarray(map_y),
-            cv2.INTER_CUBIC,
-            borderMode=cv2.BORDER_REFLECT,
-        )
-
-
-def _aravis_library() -> ctypes.CDLL:
-    library = ctypes.CDLL("libaravis-0.8.so.0")
-    getters = {
-        "arv_buffer_get_image_width": ctypes.c_int,
-        "arv_buffer_get_image_height": ctypes.c_int,
-        "arv_buffer_get_image_x": ctypes.c_int,
-        "arv_buffer_get_image_y": ctypes.c_int,
-        "arv_buffer_get_frame_id": ctypes.c_uint64,
-        "arv_buffer_get_timestamp": ctypes.c_uint64,
-    }
-    for name, result in getters.items():
-        function = getattr(library, name)
-        function.argtypes = [ctypes.c_void_p]
-        function.restype = result
-    library.arv_buffer_get_data.argtypes = [ctypes.c_void_p, ctypes.POINTER(ctypes.c_size_t)]
-    library.arv_buffer_get_data.restype = ctypes.c_void_p
-    library.arv_fake_camera_set_fill_pattern.argtypes = [
-        ctypes.c_void_p,
-        FillPattern,
-        ctypes.c_void_p,
-    ]
-    library.arv_fake_camera_set_fill_pattern.restype = None
-    return library
+from appliance.sim.gige_camera import MONO8, MONO16, DrawnGigECamera, FrameRequest
+from appliance.sim.stretched_speckle import StretchedSpecimen
 
 
 class SpecimenFill:
-    """The fill pattern: renders each frame at the strain of its device time, logs the truth."""
+    """Draws each frame at the strain of its device time and logs the truth before it is sent
+    (the `draw` of `appliance.sim.gige_camera.DrawnGigECamera`)."""
 
     def __init__(
         self,
-        library: ctypes.CDLL,
         specimen: StretchedSpecimen,
         truth: IO[str],
         *,
@@ -175,7 +86,6 @@ class SpecimenFill:
         max_strain: float,
         hold_s: float,
     ) -> None:
-        self._library = library
         self._specimen = specimen
         self._truth = truth
         self._rate = strain_rate_per_s
@@ -183,7 +93,6 @@ class SpecimenFill:
         self._hold_s = hold_s
         self._t0_ns: int | None = None
         self.wire: TriggerWire | None = None
-        self.callback = FillPattern(self._fill)
 
     def strain_at(self, timestamp_ns: int) -> float:
         """e(t) of the module docstring; the first call fixes t0."""
@@ -192,36 +101,29 @@ class SpecimenFill:
         elapsed_s = (timestamp_ns - self._t0_ns) * 1e-9
         return min(self._max, self._rate * max(0.0, elapsed_s - self._hold_s))
 
-    def _fill(self, buffer: int, _data: int, _exposure: int, _gain: int, pixel_format: int) -> None:
-        if pixel_format not in (MONO8, MONO16):
-            return
-        library = self._library
-        width = library.arv_buffer_get_image_width(buffer)
-        height = library.arv_buffer_get_image_height(buffer)
-        x, y = library.arv_buffer_get_image_x(buffer), library.arv_buffer_get_image_y(buffer)
-        frame_id = int(library.arv_buffer_get_frame_id(buffer))
-        timestamp_ns = int(library.arv_buffer_get_timestamp(buffer))
-        strain = self.strain_at(timestamp_ns)
-        grey = np.clip(np.rint(self._specimen.render(x, y, width, height, strain)), 0, 255)
-        if pixel_format == MONO8:
+    def __call__(self, request: FrameRequest) -> np.ndarray | None:
+        if request.pixel_format not in (MONO8, MONO16):
+            return None
+        strain = self.strain_at(request.timestamp_ns)
+        region = [request.x, request.y, request.width, request.height]
+        grey = np.clip(np.rint(self._specimen.render(*region, strain)), 0, 255)
+        if request.pixel_format == MONO8:
             pixels = np.ascontiguousarray(grey, dtype=np.uint8)
             name = "Mono8"
         else:
             pixels = np.ascontiguousarray(grey * 257, dtype="<u2")
             name = "Mono16"
-        size = ctypes.c_size_t(0)
-        destination = library.arv_buffer_get_data(buffer, ctypes.byref(size))
         record = {
-            "frame_id": frame_id,
-            "timestamp_ns": timestamp_ns,
+            "frame_id": request.frame_id,
+            "timestamp_ns": request.timestamp_ns,
             "strain": strain,
-            "region": [x, y, width, height],
+            "region": region,
             "pixel_format": name,
             "trigger_edge": self.wire.take() if self.wire is not None else None,
         }
         self._truth.write(json.dumps(record) + "\n")
         self._truth.flush()
-        ctypes.memmove(destination, pixels.ctypes.data, pixels.nbytes)
+        return pixels
 
 
 TRIGGER_SOFTWARE_REGISTER = 0x30C
@@ -334,29 +236,15 @@ def _arguments(argv: list[str] | None) -> argparse.Namespace:
     return arguments
 
 
-def _fake_camera_pointer(fake_camera: Any) -> int:
-    """The C address of a PyGObject-wrapped GObject (its ``__gpointer__`` capsule)."""
-    get_pointer = ctypes.pythonapi.PyCapsule_GetPointer
-    get_pointer.restype = ctypes.c_void_p
-    get_pointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
-    return int(get_pointer(fake_camera.__gpointer__, None))
-
-
 def main(argv: list[str] | None = None) -> int:
     """Serve the specimen camera until SIGTERM/SIGINT; 0 on a clean stop, 2 if it cannot serve."""
     arguments = _arguments(argv)
-    import gi
-
-    gi.require_version("Aravis", "0.8")
-    from gi.repository import Aravis
-
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
 
     specimen = StretchedSpecimen(arguments.width, arguments.height, arguments.seed)
     specimen.render(0, 0, arguments.width, arguments.height, 0.0)
-    library = _aravis_library()
     with arguments.truth.open("w", encoding="utf-8") as truth:
         header = {
             "kind": "header",
@@ -375,33 +263,23 @@ def main(argv: list[str] | None = None) -> int:
         truth.write(json.dumps(header) + "\n")
         truth.flush()
         fill = SpecimenFill(
-            library,
             specimen,
             truth,
             strain_rate_per_s=arguments.strain_rate,
             max_strain=arguments.max_strain,
             hold_s=arguments.hold_s,
         )
-        gv_camera = Aravis.GvFakeCamera.new(arguments.address, arguments.serial)
-        if not gv_camera.is_running():
-            print(
-                f"cannot serve on {arguments.address} (not an interface address?)", file=sys.stderr
-            )
-            del gv_camera
+        camera = DrawnGigECamera(
+            arguments.address, arguments.serial, arguments.width, arguments.height, fill
+        )
+        try:
+            camera.start()
+        except RuntimeError as exc:
+            print(str(exc), file=sys.stderr)
             return 2
-        fake_camera = gv_camera.get_fake_camera()
-        for register, value in (
-            (Aravis.FAKE_CAMERA_REGISTER_SENSOR_WIDTH, arguments.width),
-            (Aravis.FAKE_CAMERA_REGISTER_SENSOR_HEIGHT, arguments.height),
-            (Aravis.FAKE_CAMERA_REGISTER_WIDTH, arguments.width),
-            (Aravis.FAKE_CAMERA_REGISTER_HEIGHT, arguments.height),
-        ):
-            fake_camera.write_register(register, value)
-        pointer = _fake_camera_pointer(fake_camera)
-        library.arv_fake_camera_set_fill_pattern(pointer, fill.callback, None)
         if arguments.trigger_wire is not None:
             fill.wire = TriggerWire(
-                fake_camera,
+                camera.fake_camera,
                 arguments.trigger_wire,
                 stop,
                 miss_every=arguments.miss_every,
@@ -414,9 +292,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         while not stop.wait(0.2):
             pass
-        library.arv_fake_camera_set_fill_pattern(pointer, ctypes.cast(None, FillPattern), None)
-        del fake_camera
-        del gv_camera
+        camera.stop()
     return 0
 
 
