@@ -23,7 +23,8 @@
    the summary with the test's results and the report page (`appliance.results`: the
    `[specimen]` table's material and cross-section, or a simulated test's preset), the MCAP
    recording (`appliance.recording.writer`) and the hooks' outputs (a viewer), and the summary
-   returned.
+   returned; the hooks get the results as soon as they are computed (`RunHooks.on_results`:
+   the Modbus result registers, the viewer).
 
 Before the test its directories must have `[storage] min_free_mb` free, and a reserve is held
 beside the strain file (`appliance.run.disk_space`). A full disk during the test (the recording
@@ -37,7 +38,7 @@ import dataclasses
 import errno
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
@@ -264,7 +265,7 @@ def run_test(
         if line is not None:
             line.close()
         call_in_control(rig.close, alive)
-    call_in_control(lambda: _end_outputs(outputs, result), alive)
+    call_in_control(lambda: _end_outputs(outputs, result, report, hooks.on_results), alive)
     _release(reserve)
     extra = {**known_before, **_run_counts(result, samples, reference, loop, rig, pacer)}
     if writer is not None:
@@ -599,13 +600,21 @@ def _run_counts(
     return counts
 
 
-def _end_outputs(outputs: list[RunOutput], result: LoopResult) -> None:
+def _end_outputs(
+    outputs: list[RunOutput],
+    result: LoopResult,
+    report: TestReport | None = None,
+    on_results: Callable[[Mapping[str, Any]], None] | None = None,
+) -> None:
     """End every output; a failing one turns a normal end into a fault, without hiding the
-    others."""
+    others. Once `report` has ended, its results object goes to `on_results`, before the
+    outputs after it (the hooks': Modbus registers, a viewer) end."""
     errors: list[str] = []
     for output in outputs:
         try:
             output.end(result)
+            if output is report and on_results is not None:
+                on_results(report.stats()["results"])
         except Exception as exc:  # noqa: BLE001 - one failing output must not hide the others
             errors.append(f"{type(exc).__name__}: {exc}")
     if errors and result.exit_status.ended_normally:

@@ -12,7 +12,10 @@ outside, for `extensometer run` (one test) and `extensometer serve` (one test af
   liveness calls, `RunHooks.on_alive`: frames coming, or a camera outage being waited
   through), never while one of its calls hangs; the Modbus heartbeat moves with it;
 * device events (`appliance.run.loop.DeviceEvent`): a camera outage clears data-valid; a
-  camera call that hung is kept in `hung_call` (the process cannot use the camera again).
+  camera call that hung is kept in `hung_call` (the process cannot use the camera again);
+* the test's results (`RunHooks.on_results`, the summary's `results` object): written to the
+  Modbus result registers in the same update as the exit status when the test's outputs end
+  (`appliance.live.result_registers`), and cleared when the next test is armed.
 
 `hooks()` gives the `RunHooks` that connect a test run by `run_test` to the link.
 """
@@ -21,11 +24,12 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from appliance.config import Config
 from appliance.live.modbus_server import StrainRegisterServer
+from appliance.live.result_registers import result_register_values
 from appliance.live.sd_notify import ServiceNotifier
 from appliance.live.viewer import RerunViewer
 from appliance.measure.frame_measurer import StrainSample
@@ -66,6 +70,7 @@ class LiveLink:
         self._facts: RunFacts | None = None
         self.state = RunState.IDLE
         self.hung_call = ""
+        self._results: Mapping[str, float | int] | None = None
         self.modbus = StrainRegisterServer(
             config.modbus,
             self._on_command,
@@ -108,6 +113,7 @@ class LiveLink:
             on_loop=self._attach,
             device_listeners=[self._on_device_event],
             on_alive=self._on_alive,
+            on_results=self._on_results,
         )
 
     def _attach(self, loop: MeasurementLoop) -> None:
@@ -121,6 +127,11 @@ class LiveLink:
 
     def _on_sample(self, sample: StrainSample) -> None:
         self.modbus.publish(sample, self._facts)
+
+    def _on_results(self, results: Mapping[str, Any]) -> None:
+        """The test's results, computed before its outputs end: kept for the registers,
+        which take them with the exit status (`_FactsTap.end`)."""
+        self._results = result_register_values(results)
 
     def _on_alive(self) -> None:
         self.modbus.tick()
@@ -137,6 +148,7 @@ class LiveLink:
         with self._lock:
             self.state = transition.target
         if transition.target is RunState.ARMED:
+            self._results = None
             self.modbus.set_exit_status(None)
         self.modbus.set_run_state(transition.target)
         if self._on_transition is not None:
@@ -178,8 +190,10 @@ class _FactsTap:
         pass
 
     def end(self, result: LoopResult) -> None:
-        self._link.modbus.set_exit_status(result.exit_status)
-        self._link._detach()
+        link = self._link
+        results, link._results = link._results, None
+        link.modbus.set_exit_status(result.exit_status, results)
+        link._detach()
 
     def stats(self) -> dict[str, Any]:
         return {}

@@ -102,6 +102,10 @@ class RunHooks:
         on_alive: called periodically while the measurement loop is in control, never
             while one of its calls hangs (`MeasurementLoop`'s liveness listeners: the
             service's watchdog); fast, non-blocking work only.
+        on_results: called once the test's results are computed, with the summary's
+            `results` object (JSON-ready: `standard`, and by symbol `value`, `unit`, ...),
+            before `outputs` end (so a viewer can show them); not called when the results
+            could not be computed.
     """
 
     outputs: Sequence[RunOutput] = ()
@@ -111,3 +115,4 @@ class RunHooks:
     device_listeners: Sequence[Callable[[DeviceEvent], None]] = ()
     on_warning: Callable[[str], None] | None = None
     on_alive: Callable[[], None] | None = None
+    on_results: Callable[[Mapping[str, Any]], None] | None = None
