@@ -130,8 +130,10 @@ class LiveLink:
 
     def _on_results(self, results: Mapping[str, Any]) -> None:
         """The test's results, computed before its outputs end: kept for the registers,
-        which take them with the exit status (`_FactsTap.end`)."""
+        which take them with the exit status (`_FactsTap.end`), and shown in the viewer."""
         self._results = result_register_values(results)
+        if self.viewer is not None:
+            self.viewer.show_results(self._results)
 
     def _on_alive(self) -> None:
         self.modbus.tick()

@@ -22,7 +22,10 @@ Entity tree and timelines
                             counts (at most once per second of device time, and on changes)
     status/log              TextLog: start, data valid / not valid, points lost / found, frames
                             dropped, reference updates (debug), the exit status at the end
-    status/result           AnyValues: exit status, reason, frame and viewer counts (static)
+    status/result           AnyValues: exit status, reason, frame and viewer counts, and the
+                            test's results as the Modbus result registers serve them (the
+                            same names: `result_r_8_12`, `result_n`, ...; NaN not determined)
+                            (static)
     facts/calibration       AnyValues: scale, gauge length, image size, points (static)
     facts/summary           TextDocument: the test's facts (static)
 

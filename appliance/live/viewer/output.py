@@ -18,6 +18,7 @@ and `end` open and close one test's recording.
 from __future__ import annotations
 
 import datetime
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -155,6 +156,17 @@ class RerunViewer:
             self._outside_tests_dropped += 1
             return
         test.offer(sample)
+
+    def show_results(self, values: Mapping[str, float | int]) -> None:
+        """The running test's results, shown when it ends: in `status/result` beside its exit
+        status, and the determined ones in its last status document.
+
+        Args:
+            values: by name, as the Modbus result registers serve them
+                (`appliance.live.result_registers.result_register_values`).
+        """
+        if self._test is not None:
+            self._test.set_results(values)
 
     def end(self, result: LoopResult) -> None:
         """Drain, log how the test ended, flush and close its stream (at most `close_timeout_s`).

@@ -20,7 +20,7 @@ import logging
 import math
 import queue
 import threading
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import cv2
@@ -162,6 +162,7 @@ class OneTestStream:
         self._queue: queue.Queue[StrainSample] = queue.Queue(maxsize=config.queue_size)
         self._ending = threading.Event()
         self._result: LoopResult | None = None
+        self._results: dict[str, float | int] = {}
         self._last_sample: StrainSample | None = None
         self._last_valid = True
         self._last_lost = 0
@@ -208,6 +209,11 @@ class OneTestStream:
             return
         if show_image:
             self._next_image_ns = sample.timestamp_ns + self._image_period_ns
+
+    def set_results(self, values: Mapping[str, float | int]) -> None:
+        """The test's results, logged with how it ended (before `close`)."""
+        if not self.ended:
+            self._results = dict(values)
 
     def close(self, result: LoopResult) -> None:
         if self.ended:
@@ -456,6 +462,7 @@ class OneTestStream:
                 frames_dropped=result.frames_dropped,
                 viewer_samples_shown=self.samples_shown,
                 viewer_samples_dropped=self.samples_dropped,
+                **self._results,
             ),
             static=True,
         )
@@ -568,6 +575,11 @@ class OneTestStream:
             rows += [
                 ("frames measured", str(result.frames_processed)),
                 ("frames lost before measuring", str(result.frames_dropped)),
+            ]
+            rows += [
+                (name, f"{value:.6g}")
+                for name, value in self._results.items()
+                if name.startswith("result_") and math.isfinite(value)
             ]
         lines += ["| | |", "|---|---|"] + [f"| {name} | {value} |" for name, value in rows]
         return rr.TextDocument("\n".join(lines), media_type=rr.MediaType.MARKDOWN)
