@@ -28,6 +28,10 @@ points) from frame to frame and *updates its reference* whenever the match degra
   (re-acquisition); if that fails too it is LOST for this frame and its position is estimated
   from the mark's tracked points and their deformation gradient, so the mark's centroid does
   not jump; a mark with no tracked point keeps its predicted position and is reported lost;
+* the search of a stage set to "auto" is the product's choice for each mark's blur and the
+  expected one-step stretch (`appliance.measure.automatic_search`), made again when these
+  move; every choice made is reported with the inputs it used (`search_choices`,
+  `follow_search_choices`);
 * motion blur: the first reference is sharp, later frames may be blurred by the marks' motion
   during the exposure. With the exposure known, each mark's blur is estimated from its
   tracked velocity and the first reference is blurred to match (`appliance.dic.correlation`;
@@ -43,7 +47,7 @@ from __future__ import annotations
 import enum
 import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -51,6 +55,14 @@ import numpy as np
 from appliance.dic.correlation import DEFAULT_PREFILTER_SIGMA, Correlator
 from appliance.dic.icgn import PointStatus
 from appliance.dic.lpq import window_for_blur
+from appliance.measure.automatic_search import (
+    AUTO,
+    AutomaticSearch,
+    SearchChoiceChange,
+    SearchInputs,
+    axial_strain_rate_per_s,
+    prewarps_about,
+)
 
 
 class TrackStatus(enum.IntEnum):
@@ -86,11 +98,14 @@ class TrackerSettings:
         min_subset_px: smallest subset after lateral contraction (odd).
         search: integer search in every frame: "none" (IC-GN starts from the predicted
             position and deformation: the fast default, since the prediction is within a
-            pixel or two of the truth) or "zncc" / "lpq" (searched every frame).
+            pixel or two of the truth), "zncc" / "lpq" (searched every frame) or "auto"
+            (searched every frame with the product's choice for the blur and the one-step
+            stretch, `appliance.measure.automatic_search`).
         search_radius_px: half-width of the every-frame window around the prediction: the
             search radius, and the furthest a match may land from its prediction (at least 1:
             the exposure planner keeps the frame-to-frame motion within it).
-        reacquire_search: search used to re-acquire a failed point: "zncc" or "lpq".
+        reacquire_search: search used to re-acquire a failed point: "zncc", "lpq" or "auto"
+            (the product's choice, as for `search`).
         reacquire_radius_px: its half-width.
         prefilter_sigma_px: Gaussian pre-filter of IC-GN.
         min_zncc: a point whose refined ZNCC is below this is not tracked.
@@ -105,9 +120,9 @@ class TrackerSettings:
 
     subset_px: int = field(default=41, metadata={"minimum": 5, "maximum": 301, "odd": True})
     min_subset_px: int = field(default=11, metadata={"minimum": 5, "maximum": 301, "odd": True})
-    search: str = field(default="none", metadata={"choices": ("none", "zncc", "lpq")})
+    search: str = field(default="none", metadata={"choices": ("none", "zncc", "lpq", AUTO)})
     search_radius_px: int = field(default=10, metadata={"minimum": 1, "maximum": 1000})
-    reacquire_search: str = field(default="zncc", metadata={"choices": ("zncc", "lpq")})
+    reacquire_search: str = field(default="zncc", metadata={"choices": ("zncc", "lpq", AUTO)})
     reacquire_radius_px: int = field(default=40, metadata={"minimum": 0, "maximum": 1000})
     prefilter_sigma_px: float = field(
         default=DEFAULT_PREFILTER_SIGMA, metadata={"minimum": 0.0, "maximum": 5.0}
@@ -124,10 +139,12 @@ class TrackerSettings:
             raise ValueError(f"subset_px must be an odd size >= 5, got {self.subset_px}")
         if not 5 <= self.min_subset_px <= self.subset_px or self.min_subset_px % 2 == 0:
             raise ValueError(f"min_subset_px must be odd in 5..subset_px, got {self.min_subset_px}")
-        if self.search not in ("none", "zncc", "lpq"):
-            raise ValueError(f"search must be none, zncc or lpq, got {self.search!r}")
-        if self.reacquire_search not in ("zncc", "lpq"):
-            raise ValueError(f"reacquire_search must be zncc or lpq, got {self.reacquire_search!r}")
+        if self.search not in ("none", "zncc", "lpq", AUTO):
+            raise ValueError(f"search must be none, zncc, lpq or auto, got {self.search!r}")
+        if self.reacquire_search not in ("zncc", "lpq", AUTO):
+            raise ValueError(
+                f"reacquire_search must be zncc, lpq or auto, got {self.reacquire_search!r}"
+            )
         if not 0 <= self.search_radius_px <= self.reacquire_radius_px:
             raise ValueError("need 0 <= search_radius_px <= reacquire_radius_px")
         if not -1 <= self.min_zncc <= self.update_zncc <= 1:
@@ -181,6 +198,8 @@ class TrackedFrame:
             tracker read (its windows, and the new reference after an update). These pixels
             alone determine the result: a copy of the image that holds them and anything
             else elsewhere tracks to the same numbers.
+        search_choices: the automatic search choices made for this frame (stages set to
+            "auto"), with the inputs they used; empty when none changed.
     """
 
     positions: np.ndarray
@@ -190,6 +209,7 @@ class TrackedFrame:
     reference_updates: int
     marks_lost: int
     read_regions: tuple[ReadRegion, ...]
+    search_choices: tuple[SearchChoiceChange, ...] = ()
 
     @property
     def measured(self) -> np.ndarray:
@@ -209,11 +229,19 @@ def _odd_at_most(value: float, lowest: int, highest: int) -> int:
     return max(lowest, min(highest, size))
 
 
+_STAGES = ("track", "reacquire")
+
+
 class _Mark:
     """One group of points followed with its own reference window."""
 
     def __init__(self, indices: np.ndarray, settings: TrackerSettings) -> None:
         self.indices = indices
+        self.settings_of = {"track": settings.search, "reacquire": settings.reacquire_search}
+        self.auto_stages = tuple(name for name in _STAGES if self.settings_of[name] == AUTO)
+        self.auto = (
+            AutomaticSearch(settings.axis, settings.blur_tolerance_px) if self.auto_stages else None
+        )
         first = int(indices[0])
         contiguous = np.array_equal(indices, np.arange(first, first + indices.size))
         self.rows = slice(first, first + indices.size) if contiguous else indices
@@ -222,16 +250,50 @@ class _Mark:
         self.deformation_total = np.eye(2)
         self.blur_applied = 0.0
         self.first_reference = True
+        self.stages: dict[str, _Stage] = {}
         self.velocity = np.zeros(2)
+        self.velocity_measured = False
         self.gradient = np.zeros(4)
         self.last_time: float | None = None
+
+    def method(self, name: str) -> str:
+        """The search of stage `name`: its setting, or the automatic choice's."""
+        setting = self.settings_of[name]
+        return self.auto.choice.method if setting == AUTO else setting
+
+    def lpq_window(self, name: str, blur_px: float) -> int | None:
+        """The LPQ window of stage `name` (None unless it searches with LPQ): the blur rule's
+        for the blur applied to the reference or, for an automatic choice, for the blur it
+        was made for (a later reference carries the targets' blur without any applied)."""
+        if self.method(name) != "lpq":
+            return None
+        if self.settings_of[name] == AUTO:
+            blur_px = self.auto.inputs.blur_px
+        return window_for_blur(blur_px, _axis_angle(self.settings.axis), subset=self.subset)
+
+    def prewarps(self, name: str) -> list[tuple[float, ...]]:
+        """Pre-warps of stage `name`'s search: the current deformation, and for an automatic
+        choice the one-step stretch's about it."""
+        if self.settings_of[name] == AUTO:
+            return prewarps_about(self.gradient, self.auto.choice)
+        return [tuple(self.gradient)]
+
+    def search_outdated(self) -> bool:
+        """Whether an automatic stage's correlator was built for another search than the
+        choice now names (method or LPQ window)."""
+        return any(
+            (stage.method, stage.lpq_window)
+            != (self.method(name), self.lpq_window(name, self.blur_applied))
+            for name, stage in self.stages.items()
+            if name in self.auto_stages
+        )
 
     def set_reference(self, image: np.ndarray, positions: np.ndarray) -> None:
         """Make `image` the (sharp) reference with the mark's points at `positions` (m, 2)."""
         s = self.settings
         self.reference_positions = positions.copy()
         lo, hi = positions.min(axis=0), positions.max(axis=0)
-        self.stages: dict[str, _Stage] = {}
+        self.stages = {}
         for name, radius in (
             ("track", s.search_radius_px),
             ("reacquire", s.reacquire_radius_px),
@@ -261,21 +323,16 @@ class _Mark:
         """
         s = self.settings
         self.blur_applied = blur_px
-        for name, search, radius in (
-            ("track", s.search, s.search_radius_px),
-            ("reacquire", s.reacquire_search, s.reacquire_radius_px),
-        ):
+        for name, radius in (("track", s.search_radius_px), ("reacquire", s.reacquire_radius_px)):
             stage = self.stages[name]
+            stage.method = self.method(name)
+            stage.lpq_window = self.lpq_window(name, blur_px)
             stage.correlator = Correlator(
                 subset=self.subset,
-                search=search,
+                search=stage.method,
                 search_radius=radius,
                 reference_blur=(blur_px, _axis_angle(s.axis)) if blur_px > 0 else None,
-                lpq_window=(
-                    window_for_blur(blur_px, _axis_angle(s.axis), subset=self.subset)
-                    if search == "lpq"
-                    else None
-                ),
+                lpq_window=stage.lpq_window,
                 prefilter_sigma=s.prefilter_sigma_px,
                 threads=1,
             )
@@ -299,6 +356,8 @@ class _Stage:
     crop: np.ndarray
     correlator: Correlator | None = None
     ready: bool = False
+    method: str = ""
+    lpq_window: int | None = None
 
 
 def _axis_angle(axis: tuple[float, float]) -> float:
@@ -338,6 +397,10 @@ class MarkTracker:
         settings: tuning.
 
     Use: `track(image, time_s, exposure_s)` for every frame in order.
+
+    Attributes:
+        search_choices: every automatic search choice made so far, in order (stages set to
+            "auto"; the first of each mark on the reference, with no motion known).
     """
 
     def __init__(
@@ -357,14 +420,26 @@ class MarkTracker:
         self.n = points.shape[0]
         self.positions = points.copy()
         self.reference_updates = 0
+        self.search_choices: list[SearchChoiceChange] = []
+        self._search_listeners: list[Callable[[SearchChoiceChange], None]] = []
         self._marks = [_Mark(np.asarray(mark, dtype=np.int64), self.settings) for mark in marks]
-        for mark in self._marks:
+        still = SearchInputs(0.0, 0.0, 0.0, strain_rate_per_s=None, frame_interval_s=None)
+        for number, mark in enumerate(self._marks):
+            if mark.auto is not None:
+                self._choose(mark, number, still, None, [])
             mark.set_reference(reference, points[mark.indices])
 
     @property
     def subsets(self) -> list[int]:
         """Current subset size of every mark, px."""
         return [mark.subset for mark in self._marks]
+
+    def follow_search_choices(self, listener: Callable[[SearchChoiceChange], None]) -> None:
+        """Call `listener` with every automatic search choice made so far, then with every
+        later one as it is made (on the thread that calls `track`)."""
+        for change in self.search_choices:
+            listener(change)
+        self._search_listeners.append(listener)
 
     def track(self, image: np.ndarray, time_s: float, exposure_s: float = 0.0) -> TrackedFrame:
         """Measure all points in the next frame.
@@ -382,8 +457,15 @@ class MarkTracker:
         updates = 0
         lost_marks = 0
         regions = []
-        for mark in self._marks:
+        choices: list[SearchChoiceChange] = []
+        rate = self._strain_rate_per_s() if self._marks[0].auto is not None else None
+        for number, mark in enumerate(self._marks):
             reads: list[ReadRegion] = []
+            if mark.auto is not None:
+                dt = None if mark.last_time is None else time_s - mark.last_time
+                speed = float(np.hypot(*mark.velocity))
+                inputs = SearchInputs(speed * exposure_s, speed, exposure_s, rate, dt)
+                self._choose(mark, number, inputs, time_s, choices)
             result = self._track_mark(mark, image, time_s, exposure_s, reads)
             idx = mark.rows
             positions[idx], status[idx], zncc[idx], gradients[idx] = result[:4]
@@ -396,7 +478,36 @@ class MarkTracker:
             regions.append(functools.reduce(ReadRegion.union, reads))
         self.reference_updates += updates
         self.positions = positions
-        return TrackedFrame(positions, status, zncc, gradients, updates, lost_marks, tuple(regions))
+        return TrackedFrame(
+            positions, status, zncc, gradients, updates, lost_marks, tuple(regions), tuple(choices)
+        )
+
+    def _strain_rate_per_s(self) -> float | None:
+        """The axial strain rate the marks' last positions and velocities give, 1/s."""
+        centres = np.array([_mean_rows(self.positions[mark.rows]) for mark in self._marks])
+        velocities = [mark.velocity if mark.velocity_measured else None for mark in self._marks]
+        return axial_strain_rate_per_s(centres, velocities, self.settings.axis)
+
+    def _choose(
+        self,
+        mark: _Mark,
+        number: int,
+        inputs: SearchInputs,
+        time_s: float | None,
+        changes: list[SearchChoiceChange],
+    ) -> None:
+        """Make a mark's automatic choice again if its inputs moved; a new choice rebuilds the
+        correlators it changes and is reported."""
+        choice = mark.auto.update(inputs, mark.subset)
+        if choice is None:
+            return
+        if mark.search_outdated():
+            mark.prepare(mark.blur_applied)
+        change = SearchChoiceChange(time_s, number, mark.auto_stages, inputs, choice)
+        changes.append(change)
+        self.search_choices.append(change)
+        for listener in self._search_listeners:
+            listener(change)
 
     def _track_mark(
         self,
@@ -429,6 +540,7 @@ class MarkTracker:
             mark.gradient = _mean_rows(gradients[status != _LOST])
             if dt:
                 mark.velocity = velocity
+                mark.velocity_measured = True
         mark.last_time = time_s
         return result
 
@@ -462,7 +574,7 @@ class MarkTracker:
             origin = stage.origin + shift
             reads.append(_crop_region(image.shape, origin, w, h))
             correlator = mark.correlator(name)
-            correlator.prewarps = prewarps
+            correlator.prewarps = mark.prewarps(name) if name in mark.auto_stages else prewarps
             result = correlator.measure(_crop(image, origin, w, h), guess).refinement
             moved = np.hypot(result.u - guess[:, 0], result.v - guess[:, 1])
             good = (
