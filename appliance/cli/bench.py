@@ -135,6 +135,48 @@ def add_parser(commands: argparse._SubParsersAction) -> None:
     _add_soak(benches)
     _add_optics(benches)
     _add_detection(benches)
+    _add_gige(benches)
+
+
+def _add_gige(benches: argparse._SubParsersAction) -> None:
+    gige = benches.add_parser(
+        "gige",
+        help="a GigE Vision camera at full rate through the whole appliance (recording on, "
+        "Modbus polled): frames dropped, delivery -> register update latency",
+    )
+    gige.add_argument(
+        "--duration-s",
+        type=arguments.within(float, 1.0, 3600.0),
+        default=60.0,
+        help="seconds of test after its first sample (default 60)",
+    )
+    gige.add_argument(
+        "--width-px", type=arguments.within(int, 128, 4096), default=1024, help="(default 1024)"
+    )
+    gige.add_argument(
+        "--height-px", type=arguments.within(int, 128, 4096), default=1024, help="(default 1024)"
+    )
+    gige.add_argument(
+        "--frame-rate-hz",
+        type=arguments.within(float, 1.0, 1000.0),
+        default=200.0,
+        help="the camera's frame rate asked for (default 200)",
+    )
+    _add_json_and_out(gige)
+    gige.set_defaults(handler=_gige)
+
+
+def _gige(args: argparse.Namespace) -> int:
+    from appliance.bench.gige_rate import run_gige_benchmark
+
+    return run_gige_benchmark(
+        args.out,
+        args.json,
+        duration_s=args.duration_s,
+        width=args.width_px,
+        height=args.height_px,
+        frame_rate_hz=args.frame_rate_hz,
+    )
 
 
 def _add_detection(benches: argparse._SubParsersAction) -> None:
