@@ -48,6 +48,7 @@ import numpy as np
 from appliance import __version__
 from appliance.config import Config
 from appliance.errors import InputError
+from appliance.measure.automatic_search import SearchChoiceChange
 from appliance.measure.edge_width import EdgesNotFound, EdgeWidthGauge, edge_width_gauge
 from appliance.measure.frame_measurer import StopCriteria, StrainSample, tracker_and_gauges
 from appliance.measure.gauges import (
@@ -221,6 +222,7 @@ def run_test(
     facts = {"test_id": test_id, "simulated": simulate, **known_before}
     warn = _warning_listener(recorder, hooks)
     reference = _Reference(config, rig, calibration, samples, outputs, facts, warn)
+    reference.note = _note_listener(recorder, line)
     drops = DropWarning(1.0 / plan.frame_period_s, warn)
     loop = MeasurementLoop(
         rig.camera,
@@ -404,6 +406,8 @@ class _Reference:
         self.warn = warn
         self.points_placed = 0
         self.placement: dict[str, Any] = {}
+        self.note: Callable[[str], None] = lambda text: None
+        self.search_choices: list[dict[str, Any]] = []
 
     def place_marks(
         self, reference: Frame
@@ -455,7 +459,14 @@ class _Reference:
                 f"centred on the image along [gauge] axis_deg = {centre.axis_deg:g}; set "
                 "[gauge] centre_x_px and centre_y_px if the specimen is elsewhere"
             )
+        if isinstance(tracker, MarkTracker):
+            tracker.follow_search_choices(self._search_choice)
         return tracker, gauges, widths
+
+    def _search_choice(self, change: SearchChoiceChange) -> None:
+        """An automatic search choice of the tracker: logged, and kept for the summary."""
+        self.search_choices.append(change.to_json())
+        self.note(change.describe())
 
     def _placed_marks(self, reference: Frame) -> tuple[np.ndarray, StrainGaugesLayout, GaugeCentre]:
         """Speckle marks placed on the gauge centre of the reference frame, checked."""
@@ -588,6 +599,8 @@ def _run_counts(
     }
     if result.hung_call:
         counts["hung_call"] = result.hung_call
+    if reference.search_choices:
+        counts["search_choices"] = reference.search_choices
     statistics = rig.camera.statistics()
     if statistics:
         counts["camera_statistics"] = statistics
@@ -701,6 +714,20 @@ def _transition_listener(
             hooks.on_transition(record)
 
     return transition
+
+
+def _note_listener(
+    recorder: McapRecorder | None, line: ProgressLine | None
+) -> Callable[[str], None]:
+    """A line about the test (not a warning) to the recording's log and the progress line."""
+
+    def note(text: str) -> None:
+        if recorder is not None:
+            recorder.log("INFO", text)
+        if line is not None:
+            line.note(text)
+
+    return note
 
 
 def _warning_listener(recorder: McapRecorder | None, hooks: RunHooks) -> Callable[[str], None]:
