@@ -22,10 +22,17 @@ import numpy as np
 import pytest
 from pymodbus.client import ModbusTcpClient
 
+from appliance.config import ModbusConfig
 from appliance.live import modbus_map
 from appliance.live.modbus_map import BY_NAME, MAP_SIZE, RESULT_VALUES, ResultsStandard
-from appliance.live.result_registers import RESULT_SYMBOLS, UNIT_FACTORS
+from appliance.live.modbus_server import StrainRegisterServer
+from appliance.live.result_registers import (
+    RESULT_SYMBOLS,
+    UNIT_FACTORS,
+    result_register_values,
+)
 from appliance.live.viewer import RESULT
+from appliance.run.state import ExitStatus
 from tests.system import rerun_peers
 from tests.system.modbus_peers import free_tcp_port
 from tests.system.notify_harness import NotifyHarness
@@ -48,13 +55,13 @@ def _config(tmp_path: Path, port: int) -> Path:
     return path
 
 
-def _read_map(client: ModbusTcpClient) -> dict[str, float | int]:
+def _read_map(client: ModbusTcpClient, word_order: str = "big") -> dict[str, float | int]:
     """Every value of the map from one read request (one register image)."""
     response = client.read_holding_registers(0, count=MAP_SIZE)
     assert not response.isError(), response
     words = response.registers
     return {
-        r.name: modbus_map.decode(r, words[r.address : r.end])
+        r.name: modbus_map.decode(r, words[r.address : r.end], word_order)
         for r in modbus_map.REGISTER_MAP
         if r.data_type is not modbus_map.RegisterType.RESERVED
     }
@@ -137,3 +144,46 @@ def test_a_served_metal_test_leaves_its_results_on_modbus_until_the_next_test(tm
             assert math.isnan(shown[name]), name
         else:
             assert shown[name] == pytest.approx(expected, rel=1e-12), name
+
+
+def test_results_are_written_with_the_exit_status_counted_and_cleared():
+    """The server alone, in the little word order (CDAB; the served test reads ABCD)."""
+    port = free_tcp_port()
+    server = StrainRegisterServer(
+        ModbusConfig(tcp=f"127.0.0.1:{port}", word_order="little"), lambda *_: False
+    )
+    server.start(timeout_s=30.0)
+    client = ModbusTcpClient("127.0.0.1", port=port, timeout=10)
+    assert client.connect()
+    rubber = {
+        "standard": "ISO 37",
+        "TS": {"value": 21.5, "unit": "MPa"},
+        "Eb": {"value": 612.25, "unit": "%"},
+        "S100": {"value": None, "unit": "MPa"},
+    }
+    try:
+        server.set_exit_status(ExitStatus.BREAK, result_register_values(rubber))
+        first = _read_map(client, "little")
+        assert (first["exit_status"], first["results_valid"], first["results_counter"]) == (2, 1, 1)
+        assert first["results_standard"] == ResultsStandard.ISO_37
+        assert first["result_tensile_strength_mpa"] == 21.5
+        assert first["result_elongation_at_break"] == float(np.float32(6.1225))
+        assert math.isnan(first["result_s100_mpa"]) and math.isnan(first["result_r_8_12"])
+        refused = client.write_registers(BY_NAME["result_r_8_12"].address, [0, 0])
+        assert refused.isError() and refused.exception_code == 2
+
+        server.set_exit_status(None)
+        cleared = _read_map(client, "little")
+        assert (cleared["exit_status"], cleared["results_valid"]) == (0, 0)
+        assert cleared["results_counter"] == 1
+        assert math.isnan(cleared["result_tensile_strength_mpa"])
+
+        server.set_exit_status(ExitStatus.FAULT)
+        failed = _read_map(client, "little")
+        assert (failed["exit_status"], failed["results_valid"]) == (5, 0)
+        assert failed["results_counter"] == 1
+        server.set_exit_status(ExitStatus.COMPLETED, result_register_values(rubber))
+        assert _read_map(client, "little")["results_counter"] == 2
+    finally:
+        client.close()
+        server.close()
