@@ -13,11 +13,14 @@ what the tracker knows of the frames and nothing else:
   between frames, as an engineering strain exp(rate dt) - 1; untold (None) until both marks'
   velocities are measured, or with fewer than two marks.
 
-The choice is made again for a mark when its blur has moved by more than `blur_tolerance_px`
-from the blur the last choice used, or the one-step stretch by more than half a pre-warp step
-(`appliance.dic.stretch.STRETCH_STEP`), or the stretch becomes known; every choice made is a
-`SearchChoiceChange` with the inputs it used, which the tracker hands to its listeners (the
-run logs it) and keeps in order.
+The one-step stretch is handed to the decision in steps of `STRETCH_QUANTUM` (half the
+pre-warps' strain step, `appliance.dic.stretch.STRETCH_STEP`: 2.5 %, which moves the ends of
+a 41 px subset by half a pixel). The decision is made again for a mark when its blur
+has moved by more than `blur_tolerance_px` from the blur the last decision used, or the
+stretch so stepped changes; a decision that changes the search the tracker runs (the method,
+the LPQ window or the pre-warps' stretch) is a `SearchChoiceChange` with the inputs it used,
+which the tracker hands to its listeners (the run logs it) and keeps in order. A blur that
+varies from frame to frame (vibration) thus does not make a line of every frame.
 
 What the tracker takes from a choice: its method (LPQ at the window of the blur rule for the
 mark's subset, `appliance.dic.lpq.window_for_blur`, or ZNCC) and its pre-warps over the
@@ -51,6 +54,9 @@ __all__ = [
 
 AUTO = "auto"
 """The setting that hands a stage's search to the automatic choice."""
+
+STRETCH_QUANTUM = STRETCH_STEP / 2
+"""Step in which the one-step stretch is handed to the decision."""
 
 LARGEST_ONE_STEP_STRETCH = (-0.45, 3.0)
 """Range the one-step stretch is clipped to before pre-warps are made of it (their limits)."""
@@ -86,11 +92,12 @@ class SearchInputs:
 
     def stretch_range(self) -> tuple[float, float] | None:
         """The one-step stretch as the range the pre-warps cover: from 0 (the mark's current
-        deformation) to the expected step, or None when untold."""
+        deformation) to the expected step in whole `STRETCH_QUANTUM`s, or None when untold."""
         step = self.one_step_stretch
         if step is None:
             return None
-        return (min(0.0, step), max(0.0, step))
+        stepped = math.floor(step / STRETCH_QUANTUM + 0.5) * STRETCH_QUANTUM
+        return (min(0.0, stepped), max(0.0, stepped))
 
     def describe(self) -> dict:
         """The inputs as JSON fields."""
@@ -114,7 +121,8 @@ class SearchChoiceChange:
         mark: index of the mark (the tracker's order of marks).
         stages: the stages that follow the choice: "track" (every frame), "reacquire".
         inputs: what the choice was made from.
-        choice: the decision function's choice.
+        choice: the decision function's choice (its recovery of rejected points is
+            `extensometer track`'s; the tracker estimates a failed point from its mark).
     """
 
     time_s: float | None
@@ -167,12 +175,15 @@ class AutomaticSearch:
         self.blur_tolerance_px = blur_tolerance_px
         self.inputs: SearchInputs | None = None
         self.choice: SearchChoice | None = None
+        self.search_changed = False
 
-    def update(self, inputs: SearchInputs, subset_px: int) -> SearchChoice | None:
-        """Make the choice again if `inputs` moved beyond tolerance from the last choice's
-        (or there is none yet); returns the new choice, or None when the last one holds."""
+    def update(self, inputs: SearchInputs, subset_px: int) -> bool:
+        """Decide again if `inputs` moved beyond tolerance from the last decision's (or there
+        is none yet); returns whether it decided again, and `search_changed` says whether
+        the search the tracker runs changed with it."""
         if self.inputs is not None and not self._moved(inputs):
-            return None
+            return False
+        before = self._search()
         self.inputs = inputs
         self.choice = choose_search(
             blur_px=inputs.blur_px,
@@ -181,16 +192,19 @@ class AutomaticSearch:
             stretch_axis=self.stretch_axis,
             subset=subset_px,
         )
-        return self.choice
+        self.search_changed = self._search() != before
+        return True
+
+    def _search(self) -> tuple | None:
+        """What of the choice the tracker runs: method, LPQ window, the pre-warps' stretch."""
+        c = self.choice
+        return None if c is None else (c.method, c.lpq_window, c.stretch)
 
     def _moved(self, inputs: SearchInputs) -> bool:
         last = self.inputs
         if abs(inputs.blur_px - last.blur_px) > self.blur_tolerance_px:
             return True
-        step, last_step = inputs.one_step_stretch, last.one_step_stretch
-        if (step is None) != (last_step is None):
-            return step is not None
-        return step is not None and abs(step - last_step) > STRETCH_STEP / 2
+        return inputs.stretch_range() != last.stretch_range()
 
 
 def axial_strain_rate_per_s(

@@ -30,7 +30,7 @@ points) from frame to frame and *updates its reference* whenever the match degra
   not jump; a mark with no tracked point keeps its predicted position and is reported lost;
 * the search of a stage set to "auto" is the product's choice for each mark's blur and the
   expected one-step stretch (`appliance.measure.automatic_search`), made again when these
-  move; every choice made is reported with the inputs it used (`search_choices`,
+  move; every change of the search is reported with the inputs it used (`search_choices`,
   `follow_search_choices`);
 * motion blur: the first reference is sharp, later frames may be blurred by the marks' motion
   during the exposure. With the exposure known, each mark's blur is estimated from its
@@ -198,8 +198,8 @@ class TrackedFrame:
             tracker read (its windows, and the new reference after an update). These pixels
             alone determine the result: a copy of the image that holds them and anything
             else elsewhere tracks to the same numbers.
-        search_choices: the automatic search choices made for this frame (stages set to
-            "auto"), with the inputs they used; empty when none changed.
+        search_choices: the changes of an automatic search made for this frame (stages set
+            to "auto"), with the inputs they used; empty when none changed.
     """
 
     positions: np.ndarray
@@ -251,6 +251,7 @@ class _Mark:
         self.blur_applied = 0.0
         self.first_reference = True
         self.stages: dict[str, _Stage] = {}
+        self.decision: SearchChoiceChange | None = None
         self.velocity = np.zeros(2)
         self.velocity_measured = False
         self.gradient = np.zeros(4)
@@ -399,7 +400,7 @@ class MarkTracker:
     Use: `track(image, time_s, exposure_s)` for every frame in order.
 
     Attributes:
-        search_choices: every automatic search choice made so far, in order (stages set to
+        search_choices: every change of an automatic search so far, in order (stages set to
             "auto"; the first of each mark on the reference, with no motion known).
     """
 
@@ -433,6 +434,12 @@ class MarkTracker:
     def subsets(self) -> list[int]:
         """Current subset size of every mark, px."""
         return [mark.subset for mark in self._marks]
+
+    def search_decisions(self) -> list[SearchChoiceChange | None]:
+        """The automatic search decision in force for every mark (None: no stage is "auto"):
+        the latest, also where it left the search as it was (a blur moved with the method,
+        window and pre-warps unchanged), and so was not reported."""
+        return [mark.decision for mark in self._marks]
 
     def follow_search_choices(self, listener: Callable[[SearchChoiceChange], None]) -> None:
         """Call `listener` with every automatic search choice made so far, then with every
@@ -496,14 +503,16 @@ class MarkTracker:
         time_s: float | None,
         changes: list[SearchChoiceChange],
     ) -> None:
-        """Make a mark's automatic choice again if its inputs moved; a new choice rebuilds the
-        correlators it changes and is reported."""
-        choice = mark.auto.update(inputs, mark.subset)
-        if choice is None:
+        """Decide a mark's automatic search again if its inputs moved: the correlators it
+        changes are rebuilt, and a change of the search is reported."""
+        if not mark.auto.update(inputs, mark.subset):
             return
+        change = SearchChoiceChange(time_s, number, mark.auto_stages, inputs, mark.auto.choice)
+        mark.decision = change
         if mark.search_outdated():
             mark.prepare(mark.blur_applied)
-        change = SearchChoiceChange(time_s, number, mark.auto_stages, inputs, choice)
+        if not mark.auto.search_changed:
+            return
         changes.append(change)
         self.search_choices.append(change)
         for listener in self._search_listeners:
