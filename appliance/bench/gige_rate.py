@@ -211,8 +211,8 @@ def _stop_after(loop: Any, stamps: _Stamps, duration_s: float, stop: threading.E
 
 @contextlib.contextmanager
 def _peers(width: int, height: int, modbus_port: int) -> Iterator[dict[str, Any]]:
-    """The camera and (once the server is up, see `start_client`) the polling client; their
-    outputs in the dict when the block ends."""
+    """The camera, and the polling client between `start_client` (once the server is up) and
+    `stop_client` (before the server closes); their outputs in the dict when the block ends."""
     if gvcp_port_bound(CAMERA_ADDRESS):
         raise InputError(f"bench gige: something already serves GVCP on {CAMERA_ADDRESS}:3956")
     peers: dict[str, Any] = {}
@@ -227,13 +227,16 @@ def _peers(width: int, height: int, modbus_port: int) -> Iterator[dict[str, Any]
             "the polling client",
         )
 
-    peers["start_client"] = start_client
-    try:
-        yield peers
-    finally:
+    def stop_client() -> None:
         client = peers.pop("client_process", None)
         if client is not None:
             peers["client"] = json.loads(stop_peer(client, "the polling client"))
+
+    peers["start_client"], peers["stop_client"] = start_client, stop_client
+    try:
+        yield peers
+    finally:
+        stop_client()
         peers["camera"] = json.loads(stop_peer(camera, "the GigE camera"))
 
 
@@ -310,6 +313,7 @@ def measure_gige(
             outcome = run_test(config, simulate=False, files=files, hooks=hooks, test_id="gige")
         finally:
             stop.set()
+            peers["stop_client"]()
             link.close()
         recording_mb = files.recording.stat().st_size / 1e6 if files.recording.exists() else None
     summary = outcome.as_dict()
