@@ -44,7 +44,8 @@ Reported:
 * the tracking thread's busy time per frame (measuring, strain, the immediate sinks: what
   bounds the rate it can keep up with), the recording's figures (samples, whole frames
   recorded and skipped, degradation), the appliance process's CPU time per second of the
-  test (all threads), and the 1-minute load average before anything started.
+  test (all threads), the 1-minute load average before anything started and after the
+  test, and the benchmark's niceness (other work on the same cores shows in every figure).
 
 Target: at 1 MP Mono8 and 200 frames/s, no frame dropped by the appliance over 60 s; met when
 the camera sent at >= 99.5 % of the requested rate, no frame was lost before delivery and the
@@ -315,7 +316,8 @@ def measure_gige(
             stop.set()
             peers["stop_client"]()
             link.close()
-        recording_mb = files.recording.stat().st_size / 1e6 if files.recording.exists() else None
+        recording = files.recording
+        recording_mb = recording.stat().st_size / 1e6 if recording and recording.exists() else None
     summary = outcome.as_dict()
     return _figures(
         summary,
@@ -340,6 +342,8 @@ def measure_gige(
             "python": platform.python_version(),
             "cpus": os.cpu_count(),
             "load_average_1min": load,
+            "load_average_1min_after": os.getloadavg()[0],
+            "niceness": os.nice(0),
             "recording_mb": recording_mb,
             "appliance_cpu_share": _cpu_share(stamps.cpu_s),
         },
@@ -479,7 +483,8 @@ def format_table(figures: Mapping[str, Any]) -> str:
         f"subset {setup['subset_px']} px, recording (windows every frame, whole frames at "
         f"{setup['full_frame_rate_hz']:g} Hz), Modbus TCP polled every "
         f"{setup['poll_interval_ms']:g} ms; {setup['cpus']} CPUs, load average "
-        f"{setup['load_average_1min']:.2f} before",
+        f"{setup['load_average_1min']:.2f} before and {setup['load_average_1min_after']:.2f} "
+        f"after, niceness {setup['niceness']}",
         f"target: {figures['target']} -> {figures['verdict']}"
         + (f" ({'; '.join(figures['verdict_reasons'])})" if figures["verdict_reasons"] else ""),
         "",
