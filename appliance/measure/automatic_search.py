@@ -15,12 +15,14 @@ what the tracker knows of the frames and nothing else:
 
 The one-step stretch is handed to the decision in steps of `STRETCH_QUANTUM` (half the
 pre-warps' strain step, `appliance.dic.stretch.STRETCH_STEP`: 2.5 %, which moves the ends of
-a 41 px subset by half a pixel). The decision is made again for a mark when its blur
-has moved by more than `blur_tolerance_px` from the blur the last decision used, or the
-stretch so stepped changes; a decision that changes the search the tracker runs (the method,
-the LPQ window or the pre-warps' stretch) is a `SearchChoiceChange` with the inputs it used,
-which the tracker hands to its listeners (the run logs it) and keeps in order. A blur that
-varies from frame to frame (vibration) thus does not make a line of every frame.
+a 41 px subset by half a pixel); the step in force changes when the measured stretch is more
+than `STRETCH_HOLD` (three quarters) of a step from it, so a stretch that hovers about the
+middle between two steps does not flip it. The decision is made again for a mark when its
+blur has moved by more than `blur_tolerance_px` from the blur the last decision used, or the
+stepped stretch changes; a decision that changes the search the tracker runs (the method, the
+LPQ window or the pre-warps' stretch) is a `SearchChoiceChange` with the inputs it used, which
+the tracker hands to its listeners (the run logs it) and keeps in order. A blur that varies
+from frame to frame (vibration) thus does not make a line of every frame.
 
 What the tracker takes from a choice: its method (LPQ at the window of the blur rule for the
 mark's subset, `appliance.dic.lpq.window_for_blur`, or ZNCC) and its pre-warps over the
@@ -57,6 +59,9 @@ AUTO = "auto"
 
 STRETCH_QUANTUM = STRETCH_STEP / 2
 """Step in which the one-step stretch is handed to the decision."""
+
+STRETCH_HOLD = 0.75
+"""How far, in steps, the measured stretch must be from the step in force to change it."""
 
 LARGEST_ONE_STEP_STRETCH = (-0.45, 3.0)
 """Range the one-step stretch is clipped to before pre-warps are made of it (their limits)."""
@@ -175,20 +180,23 @@ class AutomaticSearch:
         self.blur_tolerance_px = blur_tolerance_px
         self.inputs: SearchInputs | None = None
         self.choice: SearchChoice | None = None
+        self.stretch: tuple[float, float] | None = None
         self.search_changed = False
 
     def update(self, inputs: SearchInputs, subset_px: int) -> bool:
         """Decide again if `inputs` moved beyond tolerance from the last decision's (or there
         is none yet); returns whether it decided again, and `search_changed` says whether
         the search the tracker runs changed with it."""
-        if self.inputs is not None and not self._moved(inputs):
+        stretch = self._stretch_for(inputs)
+        if self.inputs is not None and not self._moved(inputs, stretch):
             return False
         before = self._search()
         self.inputs = inputs
+        self.stretch = stretch
         self.choice = choose_search(
             blur_px=inputs.blur_px,
             blur_angle_deg=self.axis_deg,
-            stretch=inputs.stretch_range(),
+            stretch=stretch,
             stretch_axis=self.stretch_axis,
             subset=subset_px,
         )
@@ -200,11 +208,21 @@ class AutomaticSearch:
         c = self.choice
         return None if c is None else (c.method, c.lpq_window, c.stretch)
 
-    def _moved(self, inputs: SearchInputs) -> bool:
-        last = self.inputs
-        if abs(inputs.blur_px - last.blur_px) > self.blur_tolerance_px:
+    def _stretch_for(self, inputs: SearchInputs) -> tuple[float, float] | None:
+        """The stepped stretch range for `inputs`: the one in force while the measured step
+        is within `STRETCH_HOLD` steps of it."""
+        stepped = inputs.stretch_range()
+        if stepped is None or self.stretch is None:
+            return stepped
+        held = self.stretch[0] + self.stretch[1]
+        if abs(inputs.one_step_stretch - held) <= STRETCH_HOLD * STRETCH_QUANTUM:
+            return self.stretch
+        return stepped
+
+    def _moved(self, inputs: SearchInputs, stretch: tuple[float, float] | None) -> bool:
+        if abs(inputs.blur_px - self.inputs.blur_px) > self.blur_tolerance_px:
             return True
-        return inputs.stretch_range() != last.stretch_range()
+        return stretch != self.stretch
 
 
 def axial_strain_rate_per_s(

@@ -60,6 +60,7 @@ def _exposed_frame(pattern, k: int, exposure_s: float) -> tuple[np.ndarray, np.n
 def _same_as_tracks_choice(change) -> None:
     """The tracker's choice is the decision function's for the inputs it measured."""
     inputs = change.inputs
+    assert change.choice.stretch == inputs.stretch_range()
     expected = choose_search(
         blur_px=inputs.blur_px,
         blur_angle_deg=90.0,
