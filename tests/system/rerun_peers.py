@@ -184,6 +184,20 @@ def static(store: ChunkStore, entity: str) -> dict[str, object]:
     return values
 
 
+def latest(store: ChunkStore, entity: str) -> dict[str, object]:
+    """The components of an entity, static or logged on a timeline: column name -> last value."""
+    values: dict[str, object] = {}
+    for chunk in _chunks(store, entity):
+        batch = chunk.to_record_batch()
+        for field in batch.schema:
+            if (field.metadata or {}).get(b"rerun:kind") == b"data":
+                value = batch.column(field.name).to_pylist()[-1]
+                values[field.name] = (
+                    value[0] if isinstance(value, list) and len(value) == 1 else value
+                )
+    return values
+
+
 def strains(samples) -> dict[int, float]:
     """The finite axial engineering strains of samples, by sample index."""
     return {

@@ -136,7 +136,7 @@ def test_a_served_metal_test_leaves_its_results_on_modbus_until_the_next_test(tm
         assert service.terminate(timeout=60) == 0
 
     store = rerun_peers.recordings(tmp_path / f"{test_id}.rrd")[test_id]
-    shown = rerun_peers.static(store, RESULT)
+    shown = rerun_peers.latest(store, RESULT)
     assert shown["exit_status"] == "completed"
     for name in RESULT_SYMBOLS:
         expected = _expected(results, name)

@@ -148,7 +148,7 @@ def test_served_tests_reach_a_remote_viewer_that_stays_connected_across_tests(tm
         assert len(expected) == 30
         assert rerun_peers.series(store, AXIAL_STRAIN) == expected
         assert ENTITIES <= rerun_peers.entity_paths(store)
-        assert rerun_peers.static(store, RESULT)["exit_status"] == "completed"
+        assert rerun_peers.latest(store, RESULT)["exit_status"] == "completed"
 
 
 def test_viewer_goes_on_when_a_remote_viewer_hangs_up_and_frees_its_port(tmp_path):
@@ -196,7 +196,7 @@ def test_save_writes_one_complete_file_per_test(tmp_path):
         }
         reference_points = rerun_peers.rows(store, POINTS, "Points2D:positions")[-1]
         assert reference_points == viewer_sender.POINTS.tolist()
-        result = rerun_peers.static(store, RESULT)
+        result = rerun_peers.latest(store, RESULT)
         assert result["viewer_samples_shown"] == len(samples)
         assert result["viewer_samples_dropped"] == 0
         log = rerun_peers.rows(store, EVENTS, "TextLog:text")
@@ -276,7 +276,7 @@ def test_a_full_queue_drops_and_counts_samples_and_never_blocks_the_measurement(
     assert slowest_s < 0.1
     (store,) = rerun_peers.recordings(path).values()
     assert len(rerun_peers.series(store, AXIAL_STRAIN)) == viewer.samples_shown
-    result = rerun_peers.static(store, RESULT)
+    result = rerun_peers.latest(store, RESULT)
     assert result["viewer_samples_dropped"] == viewer.samples_dropped
 
 
