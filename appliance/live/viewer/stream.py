@@ -19,7 +19,7 @@ name: the recording id is the test id): its facts, series styles, annotation con
 transform are logged at the reference frame's time on every timeline, its result at its last
 sample's. The gRPC server of `extensometer serve` keeps a recording's static messages beside its
 history and evicts them only once the history itself is gone, and each one it keeps holds on to
-far more of the process's memory than its own size (by measurement, about 0.35 to 1.4 MB per
+far more of the process's memory than its own size (by measurement, 0.35 to 1.8 MB per
 test's static messages with a 64 MB history): with static data per test the service's memory
 grew with every test and did not level off; without it, it stays flat once the history is full.
 """
