@@ -87,7 +87,9 @@ class PointMeasurement:
         self.report: dict | None = None
         self.zncc: ZNCCSearch | None = None
         if self.method == "zncc":
-            self.zncc = ZNCCSearch(subset=subset, radius=radius, threads=threads)
+            self.zncc = ZNCCSearch(
+                subset=subset, radius=radius, threads=threads, coarse_to_fine=True
+            )
             self.zncc.prepare(self.reference, self.points)
 
     def measure(self, image: np.ndarray, guess: np.ndarray, prepared: PreparedTarget) -> ICGNResult:
