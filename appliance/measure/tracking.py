@@ -35,8 +35,13 @@ points) from frame to frame and *updates its reference* whenever the match degra
 * motion blur: the first reference is sharp, later frames may be blurred by the marks' motion
   during the exposure. With the exposure known, each mark's blur is estimated from its
   tracked velocity and the first reference is blurred to match (`appliance.dic.correlation`;
-  when a frame's own measurement changes the estimate, it is matched again); updated
-  references come from frames exposed at the same speed and are used as they are.
+  when a frame's own measurement changes the estimate, it is matched again, and that match
+  kept unless it measures fewer points or, for a mark that had to be re-acquired, correlates
+  worse); updated references come from frames exposed at the same speed and
+  are used as they are;
+* a mark found only by re-acquisition has jumped between frames (a slip, a vibration): its
+  velocity stays as it was, unless it was found so in the frame before too (its speed
+  changed).
 
 Directions: the loading axis is a unit vector in image coordinates (default: along the rows,
 the image y axis); "across" is perpendicular to it.
@@ -254,6 +259,7 @@ class _Mark:
         self.decision: SearchChoiceChange | None = None
         self.velocity = np.zeros(2)
         self.velocity_measured = False
+        self.jumped = False
         self.gradient = np.zeros(4)
         self.last_time: float | None = None
 
@@ -359,6 +365,19 @@ class _Stage:
     ready: bool = False
     method: str = ""
     lpq_window: int | None = None
+
+
+def _matches_better(candidate: tuple, incumbent: tuple) -> bool:
+    """Whether a mark's second match `candidate` (against a reference blurred for the speed the
+    first measured, `MarkTracker._match`) replaces the first, `incumbent`: unless it measures
+    fewer points or, where the first had to re-acquire a point, as many with a lower mean ZNCC."""
+    measured = candidate[1] != _LOST
+    before = incumbent[1] != _LOST
+    if measured.sum() != before.sum():
+        return bool(measured.sum() > before.sum())
+    if not np.any(incumbent[1] == _REACQUIRED):
+        return True
+    return bool(candidate[2][measured].mean() >= incumbent[2][before].mean())
 
 
 def _axis_angle(axis: tuple[float, float]) -> float:
@@ -531,13 +550,21 @@ class MarkTracker:
         dt = None if mark.last_time is None else time_s - mark.last_time
         predicted = last + (mark.velocity * dt if dt else 0.0)
         velocity = mark.velocity
+        jumped = False
+        result = None
         for _ in range(2):
             blur = float(np.hypot(*velocity)) * exposure_s
             if mark.first_reference and abs(blur - mark.blur_applied) > s.blur_tolerance_px:
                 mark.prepare(blur)
-            result = self._match(mark, image, predicted, reads)
+            attempt = self._match(mark, image, predicted, reads)
+            if result is not None and not _matches_better(attempt, result):
+                break
+            result = attempt
             positions, status, _, gradients, mark_lost = result
             if mark_lost or not dt:
+                break
+            jumped = mark.velocity_measured and not mark.jumped and not np.any(status == _TRACKED)
+            if jumped:
                 break
             velocity = (_mean_rows(positions) - _mean_rows(last)) / dt
             blur_now = float(np.hypot(*velocity)) * exposure_s
@@ -545,8 +572,10 @@ class MarkTracker:
                 s.blur_tolerance_px
             ):
                 break
+        positions, status, _, gradients, mark_lost = result
         if not mark_lost:
             mark.gradient = _mean_rows(gradients[status != _LOST])
+            mark.jumped = jumped
             if dt:
                 mark.velocity = velocity
                 mark.velocity_measured = True

@@ -40,21 +40,24 @@ def _travel_px(t: float) -> float:
     return 0.5 * SPEED_PX_S * RAMP_S + SPEED_PX_S * (t - RAMP_S)
 
 
-def _exposed_frame(pattern, k: int, exposure_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Frame k, exposed for `exposure_s` from its time, and the points' mean positions then."""
+def _exposed_frame(
+    pattern, k: int, exposure_s: float, slip_px: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Frame k, exposed for `exposure_s` from its time, and the points' mean positions then;
+    `slip_px` more along the axis (a slip before the frame, not motion during it)."""
     start = FRAME_INTERVAL_S * k
     samples = max(1, int(np.ceil(SPEED_PX_S * exposure_s / 0.25)))
     image = synthetic.render_exposure(
         pattern,
         HEIGHT,
         WIDTH,
-        lambda t: synthetic.AffineMapping.translation(0.0, _travel_px(t)),
+        lambda t: synthetic.AffineMapping.translation(0.0, _travel_px(t) + slip_px),
         start=start,
         stop=start + exposure_s,
         samples=samples,
     )
     times = start + (np.arange(samples) + 0.5) * exposure_s / samples
-    return image, POINTS + [0.0, np.mean([_travel_px(t) for t in times])]
+    return image, POINTS + [0.0, np.mean([_travel_px(t) for t in times]) + slip_px]
 
 
 def _same_as_tracks_choice(change) -> None:
@@ -183,3 +186,38 @@ def test_the_configuration_accepts_auto_and_names_the_key_of_a_bad_value(tmp_pat
     )
     assert done.returncode == 2
     assert done.stderr.count("\n") == 1 and "[tracking] search: must be one of" in done.stderr
+
+
+@pytest.mark.parametrize("reacquire_search", ["zncc", "auto"])
+def test_a_sudden_jump_under_a_long_blur_is_not_taken_as_speed(pattern, reacquire_search):
+    """A specimen at 100 px/s exposed for a whole frame (10 px of blur) slips 16 px between
+    two frames: the mark is re-acquired there, and followed within 0.1 px after it, with the
+    velocity it predicts with and the blur it expects left as they were before the slip."""
+    settings = TrackerSettings(subset_px=41, reacquire_search=reacquire_search)
+    tracker = MarkTracker(synthetic.render(pattern, HEIGHT, WIDTH), POINTS, MARKS, settings)
+    exposure_s, slip_frame, slip_px = 0.1, 9, 16.0
+    for k in range(1, 14):
+        image, truth = _exposed_frame(pattern, k, exposure_s, slip_px if k >= slip_frame else 0)
+        frame = tracker.track(image, FRAME_INTERVAL_S * k, exposure_s)
+        if k >= 4:
+            assert np.all(frame.measured), k
+            assert np.abs(frame.positions - truth).max() < 0.1, k
+        if k == slip_frame:
+            assert np.all(frame.status == TrackStatus.REACQUIRED)
+    for decision in tracker.search_decisions():
+        if reacquire_search == "auto":
+            assert decision.inputs.blur_px == pytest.approx(SPEED_PX_S * exposure_s, abs=0.5)
+
+
+def test_a_jump_before_the_speed_is_known_stays_measured(pattern):
+    """The same slip in the second frame, before the marks' speed is known: the jump is taken
+    as speed, and the match against the reference blurred for it fails; the re-acquired match
+    is kept, and the marks are measured in every frame."""
+    tracker = MarkTracker(
+        synthetic.render(pattern, HEIGHT, WIDTH), POINTS, MARKS, TrackerSettings(subset_px=41)
+    )
+    for k in range(1, 8):
+        image, truth = _exposed_frame(pattern, k, 0.1, 16.0 if k >= 2 else 0.0)
+        frame = tracker.track(image, FRAME_INTERVAL_S * k, 0.1)
+        assert np.all(frame.measured), k
+        assert np.abs(frame.positions - truth).max() < 0.5, k
