@@ -302,7 +302,10 @@ def test_a_gige_camera_on_the_firmware_s_trigger_output_is_stamped_with_its_trig
     stamps = np.array([t["timestamp_ns"] for t in triggers], dtype=np.int64)
     edge_seen = np.array([seen_at[rises[s - 1]] for s in sequences], dtype=np.int64)
     assert np.median(np.abs(stamps - edge_seen)) < 2e6
-    assert np.median(np.abs(device_s - trigger_s)) < 20e-3 and len(device_s) == len(trigger_s)
+    # The camera's own stamps follow the pulses only to its latency: the fake camera notices
+    # its trigger wire by polling the edge log at niceness 10, so on a loaded 2-core host a
+    # stamp can be tens of ms late. Half the 200 ms spacing still tells the pulses apart.
+    assert np.median(np.abs(device_s - trigger_s)) < 0.1 and len(device_s) == len(trigger_s)
     errors = [
         sample.strain["engineering_strain"]
         - truth.record(timestamp_ns=t["device_timestamp_ns"]).strain
