@@ -53,7 +53,7 @@ class CameraConfig:
     backend reconnects (strain is flagged not valid meanwhile); 0 = the first loss faults.
     """
 
-    url: str = "sim://camera"
+    url: str = field(default="sim://camera", metadata={"device_url": True})
     exposure_us: float | None = field(default=None, metadata=_range(1.0, 1e7))
     gain_db: float = field(default=0.0, metadata=_range(0.0, 48.0))
     pixel_format: str = field(default="Mono8", metadata={"choices": ("Mono8", "Mono12", "Mono16")})
@@ -94,7 +94,7 @@ class MachineConfig:
     map.
     """
 
-    url: str = "sim://machine"
+    url: str = field(default="sim://machine", metadata={"device_url": True})
     accepts_commands: bool = True
     poll_rate_hz: float = field(default=100.0, metadata=_range(1.0, 1000.0))
     registers: dict = field(default_factory=dict, metadata={"table": True})
@@ -439,6 +439,11 @@ def _check_value(value: Any, kind: Any, meta: dict, where: str) -> Any:
         raise InputError(f"{where}: must be odd, got {value!r}")
     if meta.get("address") and value:
         parse_address(value, where)
+    if meta.get("device_url") and value.startswith("sim://") and ("?" in value or "#" in value):
+        raise InputError(
+            f"{where}: {value!r}: a simulated device takes no options in its URL "
+            "(the simulated world is set in [sim])"
+        )
     return value
 
 

@@ -48,6 +48,11 @@ def test_empty_file_gives_the_defaults_and_values_are_typed():
         ("[camera]\nregion_width_px = 512\n", "[camera] region_x_px: required with the other"),
         ("[machine]\nregisters = 3\n", "run.toml: [machine] registers: must be a table"),
         (
+            "[camera]\nurl = 'sim://bench?bogus=1'\n",
+            "run.toml: [camera] url: 'sim://bench?bogus=1': a simulated device takes no options",
+        ),
+        ("[machine]\nurl = 'sim://machine#x'\n", "[machine] url: 'sim://machine#x': a simul"),
+        (
             "[machine.registers]\npreset = 'generic'\nforce_n = { data_type = 'float' }\n",
             "run.toml: [machine.registers.force_n] data_type: must be one of",
         ),
