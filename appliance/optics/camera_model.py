@@ -343,13 +343,18 @@ class PlaneProjection:
             self._inverse = np.linalg.inv(basis)
 
     def to_plane_mm(self, pixels: npt.ArrayLike) -> FloatArray:
-        """Plane points (X, Y) (n, 2), mm, seen at pixel positions (n, 2)."""
+        """Plane points (X, Y) (n, 2), mm, seen at pixel positions (n, 2). A pixel whose ray
+        meets the plane behind the lens or never (a tilted plane's horizon) gives NaN: it sees
+        no point of the plane."""
         normalised = self.camera.normalised(pixels)
         if self.camera.telecentric:
             return (normalised - self._translation[:2]) @ self._inverse.T
         rays = np.column_stack([normalised, np.ones(len(normalised))])
         homogeneous = rays @ self._inverse.T
-        return homogeneous[:, :2] / homogeneous[:, 2:3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            points = homogeneous[:, :2] / homogeneous[:, 2:3]
+        points[homogeneous[:, 2] <= 0.0] = np.nan
+        return points
 
     def to_pixels(self, points_mm: npt.ArrayLike) -> FloatArray:
         """Pixel positions (n, 2) of plane points (X, Y) (n, 2), mm."""

@@ -77,3 +77,15 @@ def test_moving_the_plane_away_shrinks_the_image() -> None:
 def test_edge_on_plane_is_refused() -> None:
     with pytest.raises(ValueError, match="edge-on"):
         PlaneProjection(CAMERA, PlanePose((np.pi / 2, 0.0, 0.0), (0.0, 0.0, 0.0)))
+
+
+def test_a_pixel_that_sees_no_point_of_a_tilted_plane_gives_nan() -> None:
+    """A plane tilted 85 degrees about x: the image rows on one side of its horizon look at
+    the plane behind the lens, and have no plane point; those on the other side do."""
+    camera = CameraModel(2048, 1024, 3000.0, 3000.0, 1024.0, 512.0, LensDistortion())
+    projection = PlaneProjection(camera, PlanePose((np.radians(85.0), 0.0, 0.0), (0.0, 0.0, 250.0)))
+    pixels = np.array([[1024.0, 0.0], [1024.0, 1023.0]])
+    plane = projection.to_plane_mm(pixels)
+    seen = np.isfinite(plane).all(axis=1)
+    assert seen.sum() == 1
+    assert np.allclose(projection.to_pixels(plane[seen]), pixels[seen], atol=1e-6)
