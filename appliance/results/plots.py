@@ -105,6 +105,23 @@ def time_series_svg(series: TestSeries) -> str:
     return _svg(figure)
 
 
+def transverse_svg(series: TestSeries) -> str:
+    """Transverse against axial engineering strain over the valid samples (where a test
+    measured a transverse strain), with where it came from in the title."""
+    plt = _pyplot()
+    figure, axes = plt.subplots(figsize=(WIDTH_IN, HEIGHT_IN))
+    transverse = series.transverse_strain
+    shown = series.valid & np.isfinite(transverse) if transverse is not None else series.valid
+    if transverse is not None:
+        axes.plot(100.0 * series.strain[shown], 100.0 * transverse[shown], color="#5e3c99", lw=1.0)
+    axes.set_xlabel("axial engineering strain (%)")
+    axes.set_ylabel("transverse engineering strain (%)")
+    source = f" ({series.transverse_source})" if series.transverse_source else ""
+    axes.set_title(f"Transverse strain{source}")
+    axes.grid(alpha=0.3)
+    return _svg(figure)
+
+
 def validity_svg(series: TestSeries) -> str:
     """The data-valid flag, the points lost per frame and the frames dropped so far."""
     plt = _pyplot()

@@ -132,6 +132,9 @@ class TestReport:
             if series.has_force
             else None,
             time_series=plots.time_series_svg(series),
+            transverse=plots.transverse_svg(series)
+            if series.transverse_strain is not None
+            else None,
             validity=plots.validity_svg(series),
             truth_error=plots.truth_error_svg(series) if series.has_truth else None,
             gauge=gauge,

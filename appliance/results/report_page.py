@@ -29,12 +29,13 @@ class ReportFigures:
     """The page's figures as embeddable text (`appliance.results.plots`); None = left out.
 
     Attributes:
-        stress_strain, time_series, validity, truth_error: inline SVG.
+        stress_strain, time_series, transverse, validity, truth_error: inline SVG.
         gauge: the reference frame with the gauge, a `data:` URI.
     """
 
     stress_strain: str | None = None
     time_series: str | None = None
+    transverse: str | None = None
     validity: str | None = None
     truth_error: str | None = None
     gauge: str | None = None
@@ -72,10 +73,11 @@ def report_html(
     sections = (
         ("Stress-strain curve", "stress-strain", figures.stress_strain),
         ("Strain and force over time", "time-series", figures.time_series),
+        ("Transverse strain against axial strain", "transverse", figures.transverse),
         ("Data valid and lost frames", "validity", figures.validity),
         ("Error against the simulated truth (scoring only)", "truth-error", figures.truth_error),
     )
-    for heading, anchor, svg in sections[:2]:
+    for heading, anchor, svg in sections[:3]:
         if svg is not None:
             parts += [f"<h2>{heading}</h2>", f'<figure id="{anchor}">{svg}</figure>']
     if figures.gauge is not None:
@@ -84,7 +86,7 @@ def report_html(
             f'<figure id="gauge"><img alt="reference frame with the gauge marks" '
             f'src="{figures.gauge}"></figure>',
         ]
-    for heading, anchor, svg in sections[2:]:
+    for heading, anchor, svg in sections[3:]:
         if svg is not None:
             parts += [f"<h2>{heading}</h2>", f'<figure id="{anchor}">{svg}</figure>']
     parts.append("</body></html>")

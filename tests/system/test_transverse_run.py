@@ -61,6 +61,9 @@ def test_the_width_follows_the_simulated_sheet(metal_run):
     assert nu["samples"][1] - nu["samples"][0] >= 10
     assert "width at its edges" in nu["basis"]
     assert summary["results"]["r"]["not_determined"]
+    page = (metal_run["dir"] / "report.html").read_text(encoding="utf-8")
+    figure = page[page.index('<figure id="transverse">') :]
+    assert "width at its edges" in figure[: figure.index("</figure>")]
 
 
 def test_the_recording_carries_each_station(metal_run):

@@ -251,6 +251,19 @@ def test_the_report_page_is_self_contained_and_holds_the_results_table():
     assert page.count("<svg") == 3 and "data:image/png;base64," in page
 
 
+def test_the_page_shows_the_transverse_strain_where_the_test_measured_one():
+    strain = np.linspace(0.0, 0.05, 51)
+    series = series_module.TestSeries.of(strain, 1000.0 * strain, transverse_strain=-0.3 * strain)
+    figures = report_page.ReportFigures(
+        time_series=plots.time_series_svg(series), transverse=plots.transverse_svg(series)
+    )
+    page = report_page.report_html("Tensile test", [], None, "none", figures)
+    assert page.index('id="time-series"') < page.index('id="transverse"')
+    assert "Transverse strain (given)" in page
+    without = report_page.report_html("Tensile test", [], None, "none", report_page.ReportFigures())
+    assert 'id="transverse"' not in without
+
+
 def test_a_page_without_results_says_why():
     page = report_page.report_html(
         "Tensile test",
