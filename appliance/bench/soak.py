@@ -16,9 +16,10 @@ controller over Modbus TCP, test after test for `duration_s`:
 
 The figures are those three after every test, and their slope per test fitted by least squares
 over the tests after `warm_up_tests` (the first tests load the kernels, open the servers and
-fill caches: 20 by default). With the viewer on, the resident memory grows with the Rerun
-server's history (`[rerun] history_mb`) for longer than that: over 149 tests with the shipped
-64 MB it had not levelled off; with 1 MB it was flat after 10 tests.
+fill caches: 20 by default). With the viewer on, the resident memory also grows until the Rerun
+server's history (`[rerun] history_mb`, 64 MB shipped) is full, which takes about 20 tests of
+5 s; a test's data kept beyond that bound (static data, which rerun's server keeps while it
+holds temporal data) would show as a slope that does not level off.
 The service runs with the variables the shipped unit's
 `Environment=` lines set (systemd/extensometer.service: jemalloc as the allocator among them),
 as systemd would start it. The goal: threads flat (a slope under 0.01 per test) and RSS
