@@ -7,12 +7,12 @@ and the reference subsets, cut and transformed again for every target, dominate.
 spectra) and searches a target for all points in batches (`search`):
 
 1. every point's target window (the candidate blocks, as `zncc_search` clips them) is copied,
-   less its mean, into one zero-padded N x N tile of a batch (N >= 2 radius + S, a size the
-   FFT likes), in one compiled pass;
-2. the tiles' spectra times the conjugate reference spectra, transformed back, are the
-   numerators sum (t - t_m) (w - c) of every candidate, for the whole batch in two calls of
-   `scipy.fft` (a circular correlation of size N >= window has no wrap-around in the
-   candidate region);
+   less its mean, into one zero-padded N x N tile of a batch (N >= 2 radius + S, a size
+   OpenCV's DFT transforms fast: `dft_tile_size`), in one compiled pass;
+2. the tiles' spectra times the conjugate reference spectra, transformed back (`cv2.dft`,
+   `cv2.mulSpectrums`, `cv2.idft` per tile), are the numerators sum (t - t_m) (w - c) of every
+   candidate (a circular correlation of size N >= window has no wrap-around in the candidate
+   region);
 3. one compiled pass over the batch divides them by each candidate's norm (its sums of w - c
    and (w - c)^2 from an integral image of the window, in float64), takes the winner (first in
    row-major order on ties) and its reliability (the module docstring of `integer_search`).
@@ -91,6 +91,27 @@ _BATCH_POINTS = 64
 batch's tiles stay in cache."""
 _SPECTRA_CACHE_BYTES = 256 * 2**20
 """Largest store of reference spectra kept between targets; beyond it they are recomputed."""
+
+
+def dft_tile_size(window_px: int) -> int:
+    """Side of the square tile a window of `window_px` is transformed in: the smallest
+    multiple of 16 at least `window_px` whose quotient by 16 has no prime factor beyond 5.
+
+    OpenCV's own choice (`cv2.getOptimalDFTSize`, any product of 2, 3 and 5) picks sizes such
+    as 75 or 81 whose odd radices transform at about half the speed of a larger even size:
+    measured on one core for a forward and an inverse transform of a tile, 146 us at 75
+    against 78 us at 80, 171 us at 81 against 117 us at 96, 517 us at 125 against 185 us at
+    128.
+    """
+    size = max(16, -(-int(window_px) // 16) * 16)
+    while True:
+        rest = size // 16
+        for prime in (2, 3, 5):
+            while rest % prime == 0:
+                rest //= prime
+        if rest == 1:
+            return size
+        size += 16
 
 
 @numba.njit(cache=True, nogil=True)
@@ -241,7 +262,7 @@ class ZNCCSearch:
                 f"threads must be in 1..{numba.config.NUMBA_NUM_THREADS}, got {threads}"
             )
         self.threads = threads
-        self.tile = cv2.getOptimalDFTSize(2 * self.radius + self.subset)
+        self.tile = dft_tile_size(2 * self.radius + self.subset)
         self._reference: np.ndarray | None = None
 
     def prepare(self, reference: np.ndarray, points: np.ndarray) -> None:

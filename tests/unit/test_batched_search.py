@@ -11,7 +11,7 @@ import numba
 import numpy as np
 import pytest
 
-from appliance.dic.batched_search import ZNCCSearch, zncc_search_batched
+from appliance.dic.batched_search import ZNCCSearch, dft_tile_size, zncc_search_batched
 from appliance.dic.integer_search import IntegerMatch, chi_square_map, lpq_search, zncc_search
 from appliance.dic.lpq import code_histogram, lpq_codes
 from tests.unit.test_integer_search import affine_target, grid_points, speckle
@@ -160,3 +160,23 @@ def test_lpq_search_of_all_points_at_once_is_the_per_point_composition(pair, thr
         bi, bj = divmod(int(np.argmin(cost)), cost.shape[1])
         assert (found.u[k], found.v[k]) == (x_lo + bj - cx, y_lo + bi - cy)
         assert found.score[k] == cost.min()
+
+
+def test_the_transform_tile_is_the_smallest_fast_size_that_holds_the_window():
+    """A multiple of 16 whose quotient by 16 has no prime factor beyond 5, the smallest that
+    holds the window: 80 for the 73 px window of a coarse search (OpenCV's choice was 75)."""
+
+    def fast(size):
+        if size < 16 or size % 16:
+            return False
+        rest = size // 16
+        for prime in (2, 3, 5):
+            while rest % prime == 0:
+                rest //= prime
+        return rest == 1
+
+    for window in range(1, 600):
+        size = dft_tile_size(window)
+        assert size >= window and fast(size), window
+        assert not any(fast(smaller) for smaller in range(window, size)), window
+    assert [dft_tile_size(w) for w in (47, 61, 73, 81, 101)] == [48, 64, 80, 96, 128]
