@@ -106,14 +106,14 @@ def time_series_svg(series: TestSeries) -> str:
 
 
 def transverse_svg(series: TestSeries) -> str:
-    """Transverse against axial engineering strain over the valid samples (where a test
-    measured a transverse strain), with where it came from in the title."""
+    """Transverse against axial engineering strain over the valid samples of a test that
+    measured a transverse strain (`series.transverse_strain` not None), with where it came
+    from in the title."""
     plt = _pyplot()
     figure, axes = plt.subplots(figsize=(WIDTH_IN, HEIGHT_IN))
     transverse = series.transverse_strain
-    shown = series.valid & np.isfinite(transverse) if transverse is not None else series.valid
-    if transverse is not None:
-        axes.plot(100.0 * series.strain[shown], 100.0 * transverse[shown], color="#5e3c99", lw=1.0)
+    shown = series.valid & np.isfinite(transverse)
+    axes.plot(100.0 * series.strain[shown], 100.0 * transverse[shown], color="#5e3c99", lw=1.0)
     axes.set_xlabel("axial engineering strain (%)")
     axes.set_ylabel("transverse engineering strain (%)")
     source = f" ({series.transverse_source})" if series.transverse_source else ""
